@@ -1,0 +1,48 @@
+"""NKF: surface reconstruction from oriented points with Neural Kernel Fields.
+
+NumPy in, NumPy out; no Blender needed. The main entry point is :func:`reconstruct`::
+
+    import nkf_model
+    mesh = nkf_model.reconstruct(points, normals, resolution=128)
+    mesh.vertices  # (V, 3) float32, in the input's frame
+    mesh.faces     # (F, 3) int32, facing out
+
+``method="splines"`` is the data-free Neural Splines kernel (Williams et al., CVPR 2021).
+"""
+
+from .errors import (
+    Cancelled,
+    DegenerateInputError,
+    InvalidParameterError,
+    InvalidPointCloudError,
+    MethodUnavailableError,
+    MissingNormalsError,
+    NKFInputError,
+    NoSurfaceError,
+    OutputPathError,
+    PointCloudFileError,
+    TooFewPointsError,
+)
+from .mesh import Mesh
+from .reconstruct import METHODS, InputWarning, reconstruct
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "reconstruct",
+    "Mesh",
+    "METHODS",
+    "InputWarning",
+    "Cancelled",
+    "NKFInputError",
+    "InvalidParameterError",
+    "InvalidPointCloudError",
+    "TooFewPointsError",
+    "DegenerateInputError",
+    "MissingNormalsError",
+    "PointCloudFileError",
+    "OutputPathError",
+    "NoSurfaceError",
+    "MethodUnavailableError",
+    "__version__",
+]

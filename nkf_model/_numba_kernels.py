@@ -1,0 +1,162 @@
+"""Fused CPU loops for the Neural Spline kernel, compiled with numba.
+
+The kernel sums dominate the run time, so they are written as loops over (query, centre) pairs that
+LLVM vectorises (AVX2/AVX-512): no temporaries, float64 throughout, and ``asin`` replaced by a
+polynomial accurate to a few ulp so that the loop has no library calls. Measured on a 2-core AMD
+EPYC (AVX-512): about 1.3 G kernel evaluations/s per core for 4-D inputs ``[x : 1]``, against
+0.06 G/s for the same loop with ``atan2`` and 0.02 G/s for PyTorch's element-wise code.
+
+All functions take unit vectors (rows of the homogeneous inputs divided by their norms) and return
+the angle term ``g`` of :mod:`nkf_model.kernel` combined with caller-supplied weights; the norms and
+the ``1/pi`` are applied by the caller. Every function releases the GIL.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+# asin(sqrt(z)) / sqrt(z) on z in [0, 0.5]: least-squares fit at 200 Chebyshev nodes against
+# 40-digit mpmath values; relative error below 2.3e-16 on the interval.
+_C = (
+    0.9999999999999999, 0.16666666666677823, 0.07499999997638483, 0.04464285911998916,
+    0.03038185734286673, 0.022374487587133788, 0.017311691072539496, 0.014469062930591857,
+    0.007090735098972153, 0.038856536887617706, -0.13333716944383342, 0.5255021507177141,
+    -1.410862302774558, 2.8674799892135945, -4.145540638970024, 4.112438407716415,
+    -2.4977244551994224, 0.7233320657652692,
+)  # fmt: skip
+(c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12, c13, c14, c15, c16, c17) = _C
+PI = math.pi
+_FAST = {"contract", "reassoc", "nsz"}
+_OPTS = dict(nogil=True, cache=True, fastmath=_FAST)
+
+
+@nb.njit(inline="always", fastmath={"contract"})
+def _g(d2):
+    """sin t + 2 (pi - t) cos t for d2 = |u - v|^2 of unit vectors u, v."""
+    d2 = min(max(d2, 0.0), 4.0)
+    e2 = 4.0 - d2
+    m = min(d2, e2)  # asin of the smaller half-chord keeps the polynomial on z <= 0.5
+    z = 0.25 * m
+    p = c17
+    p = p * z + c16
+    p = p * z + c15
+    p = p * z + c14
+    p = p * z + c13
+    p = p * z + c12
+    p = p * z + c11
+    p = p * z + c10
+    p = p * z + c9
+    p = p * z + c8
+    p = p * z + c7
+    p = p * z + c6
+    p = p * z + c5
+    p = p * z + c4
+    p = p * z + c3
+    p = p * z + c2
+    p = p * z + c1
+    p = p * z + c0
+    h = math.sqrt(m) * p  # = 2 asin(sqrt(m) / 2)
+    t = h if d2 <= 2.0 else PI - h
+    return 0.5 * math.sqrt(d2 * e2) + 2.0 * (PI - t) * (1.0 - 0.5 * d2)
+
+
+@nb.njit(parallel=True, **_OPTS)
+def gsum4(q, c0_, c1_, c2_, c3_, beta):
+    """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for 4-D unit vectors; c given by columns."""
+    nq = q.shape[0]
+    nc = beta.shape[0]
+    out = np.empty(nq)
+    for i in nb.prange(nq):
+        q0 = q[i, 0]
+        q1 = q[i, 1]
+        q2 = q[i, 2]
+        q3 = q[i, 3]
+        s = 0.0
+        for j in range(nc):
+            t0 = q0 - c0_[j]
+            t1 = q1 - c1_[j]
+            t2 = q2 - c2_[j]
+            t3 = q3 - c3_[j]
+            s += beta[j] * _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+        out[i] = s
+    return out
+
+
+@nb.njit(inline="always", **_OPTS)
+def _row_g(q, i, ct, j0, j1, buf):
+    """buf[:j1-j0] = g(|q[i] - c[j]|^2) for centres j0..j1 given transposed (D, M)."""
+    n = j1 - j0
+    for j in range(n):
+        buf[j] = 0.0
+    for k in range(q.shape[1]):
+        qk = q[i, k]
+        row = ct[k]
+        for j in range(n):
+            t = qk - row[j0 + j]
+            buf[j] += t * t
+    for j in range(n):
+        buf[j] = _g(buf[j])
+
+
+_BLOCK = 1024
+
+
+@nb.njit(parallel=True, **_OPTS)
+def gsum(q, ct, beta):
+    """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for any dimension; ``ct`` is (D, M)."""
+    nq = q.shape[0]
+    nc = beta.shape[0]
+    out = np.empty(nq)
+    for i in nb.prange(nq):
+        buf = np.empty(_BLOCK)
+        s = 0.0
+        for j0 in range(0, nc, _BLOCK):
+            j1 = min(nc, j0 + _BLOCK)
+            _row_g(q, i, ct, j0, j1, buf)
+            for j in range(j1 - j0):
+                s += beta[j0 + j] * buf[j]
+        out[i] = s
+    return out
+
+
+@nb.njit(parallel=True, **_OPTS)
+def gmatrix(q, ct):
+    """out[i, j] = g(|q[i] - c[j]|^2); ``q`` is (N, D), ``ct`` is (D, M)."""
+    nq = q.shape[0]
+    nc = ct.shape[1]
+    out = np.empty((nq, nc))
+    for i in nb.prange(nq):
+        _row_g(q, i, ct, 0, nc, out[i])
+    return out
+
+
+@nb.njit(parallel=True, **_OPTS)
+def gnormal(q, ct, u, v, w, nchunks):
+    """acc[j] = sum_i g_ij w_i (w_i sum_k g_ik u_k + v_i), with g_ij = g(|q[i] - c[j]|^2).
+
+    This is ``Kt (K u + v)`` for ``K = diag(w) G``: the Nystrom normal-equation product that
+    Falkon's conjugate gradient needs, computed without storing ``K``. ``ct`` is (D, M).
+    """
+    nq = q.shape[0]
+    nc = ct.shape[1]
+    acc = np.zeros((nchunks, nc))
+    step = (nq + nchunks - 1) // nchunks
+    for c in nb.prange(nchunks):
+        buf = np.empty(nc)
+        a = acc[c]
+        for i in range(c * step, min(nq, (c + 1) * step)):
+            _row_g(q, i, ct, 0, nc, buf)
+            t = 0.0
+            for j in range(nc):
+                t += buf[j] * u[j]
+            s = w[i] * (w[i] * t + v[i])
+            for j in range(nc):
+                a[j] += buf[j] * s
+    out = np.zeros(nc)
+    for c in range(nchunks):
+        for j in range(nc):
+            out[j] += acc[c, j]
+    return out

@@ -1,0 +1,236 @@
+"""Stage 5: evaluate the fitted function on a grid, only near its zero level set.
+
+The grid covers the cube ``[-GRID_HALF, GRID_HALF]^3`` of the unit box with ``resolution`` cells
+per side. Instead of all ``(R+1)^3`` nodes, the function is evaluated on a coarse grid (about 32
+cells per side), and at each finer level only inside the cells whose corners change sign, grown by
+one cell on every side. The number of evaluations then grows as R^2 (the surface), not R^3.
+Node values are kept in sparse arrays (sorted int64 keys), so memory also grows as R^2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+# The grid spans the unit box plus a margin, so surfaces that bulge past the points' bounding box
+# (and the offset constraints at +-eps) stay inside it.
+GRID_HALF = 0.55
+MIN_RESOLUTION = 16
+MAX_RESOLUTION = 1024
+COARSEST = 24  # coarse levels stop halving below this many cells per side
+
+_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
+_NEIGHBOURS = np.array(
+    [[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64
+)
+_CHILD_NODES = np.array(
+    [[i, j, k] for i in (0, 1, 2) for j in (0, 1, 2) for k in (0, 1, 2)], dtype=np.int64
+)
+
+
+def levels(resolution: int) -> list[int]:
+    """Cells per side at each level, coarse to fine, ending at ``resolution``."""
+    out = [int(resolution)]
+    while out[0] % 2 == 0 and out[0] // 2 >= COARSEST:
+        out.insert(0, out[0] // 2)
+    return out
+
+
+def node_keys(ijk: np.ndarray, r: int) -> np.ndarray:
+    """Flat int64 keys of nodes (N, 3) on a grid with ``r`` cells (``r + 1`` nodes) per side."""
+    n = r + 1
+    return (ijk[:, 0] * n + ijk[:, 1]) * n + ijk[:, 2]
+
+
+def cell_keys(ijk: np.ndarray, r: int) -> np.ndarray:
+    """Flat int64 keys of cells (N, 3) on a grid with ``r`` cells per side."""
+    return (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2]
+
+
+def cells_from_keys(keys: np.ndarray, r: int) -> np.ndarray:
+    """Inverse of :func:`cell_keys`: (N, 3) int64."""
+    return np.stack([keys // (r * r), (keys // r) % r, keys % r], axis=1)
+
+
+def node_positions(ijk: np.ndarray, r: int) -> np.ndarray:
+    """Unit-box positions (N, 3) float64 of nodes on the ``r``-cell grid."""
+    return -GRID_HALF + ijk * (2.0 * GRID_HALF / r)
+
+
+@dataclass
+class SparseField:
+    """Function values at the nodes around the zero level set of the finest grid.
+
+    Attributes
+    ----------
+    resolution : int
+        Cells per side of the finest grid.
+    keys : (K,) int64, sorted
+        :func:`node_keys` of the nodes with known values.
+    values : (K,) float64
+        Function values at those nodes.
+    band : (B, 3) int64
+        Finest-grid cells whose eight corners are known and change sign.
+    evaluations : int
+        Number of points at which the function was evaluated, over all levels.
+    level_evaluations : list of (int, int)
+        (cells per side, points evaluated) for each level.
+    """
+
+    resolution: int
+    keys: np.ndarray
+    values: np.ndarray
+    band: np.ndarray
+    evaluations: int
+    level_evaluations: list
+
+    def lookup(self, ijk: np.ndarray) -> np.ndarray:
+        """Values at nodes (N, 3); NaN where unknown."""
+        return _lookup(self.keys, self.values, node_keys(ijk, self.resolution))
+
+
+def _lookup(keys, values, query):
+    pos = np.searchsorted(keys, query)
+    pos = np.minimum(pos, len(keys) - 1)
+    found = keys[pos] == query
+    return np.where(found, values[pos], np.nan)
+
+
+def _crossing_children(local: np.ndarray) -> np.ndarray:
+    """For values (P, 3, 3, 3) at the 27 nodes of P subdivided cells, a mask (P, 2, 2, 2) of the
+    child cells whose corners are not all of one sign."""
+    neg = local < 0
+    out = np.zeros((len(local), 2, 2, 2), dtype=bool)
+    for a in (0, 1):
+        for b in (0, 1):
+            for c in (0, 1):
+                sub = neg[:, a : a + 2, b : b + 2, c : c + 2].reshape(len(local), 8)
+                out[:, a, b, c] = sub.any(axis=1) & ~sub.all(axis=1)
+    return out
+
+
+def _crossing_dense(v: np.ndarray) -> np.ndarray:
+    """Cells (N, 3) of a dense node array (r+1, r+1, r+1) whose corners are not all of one sign."""
+    neg = v < 0
+    anyneg = np.zeros(tuple(d - 1 for d in v.shape), dtype=bool)
+    allneg = np.ones_like(anyneg)
+    for a, b, c in _CORNERS:
+        sub = neg[a : a + anyneg.shape[0], b : b + anyneg.shape[1], c : c + anyneg.shape[2]]
+        anyneg |= sub
+        allneg &= sub
+    return np.argwhere(anyneg & ~allneg).astype(np.int64)
+
+
+def _dilate(cells: np.ndarray, r: int) -> np.ndarray:
+    """Cells (N, 3) grown by one cell in all 26 directions, clipped to the grid, unique."""
+    keys = cell_keys(cells, r)
+    for axis in range(3):
+        ijk = cells_from_keys(keys, r)
+        parts = [keys]
+        for d in (-1, 1):
+            moved = ijk.copy()
+            moved[:, axis] += d
+            ok = (moved[:, axis] >= 0) & (moved[:, axis] < r)
+            parts.append(cell_keys(moved[ok], r))
+        keys = np.unique(np.concatenate(parts))
+    return cells_from_keys(keys, r)
+
+
+def evaluate_sparse(
+    f: Callable[[np.ndarray], np.ndarray],
+    resolution: int,
+    *,
+    chunk: int = 65536,
+    check: Optional[Callable[[], None]] = None,
+    step: Optional[Callable[[float], None]] = None,
+) -> SparseField:
+    """Evaluate ``f`` coarse to fine around its zero level set.
+
+    Parameters
+    ----------
+    f : callable
+        ``f(points)`` with unit-box points (N, 3) float64, returning (N,) float64.
+    resolution : int
+        Cells per side of the finest grid.
+    chunk : int
+        Points per call of ``f``.
+    check : callable
+        Raises to cancel; called between chunks.
+    step : callable
+        ``step(fraction)`` progress within this stage.
+
+    Returns
+    -------
+    SparseField
+    """
+    lv = levels(resolution)
+    total_done = 0
+    per_level = []
+
+    def run(ijk, r, expected_rest):
+        nonlocal total_done
+        out = np.empty(len(ijk))
+        pts = node_positions(ijk, r)
+        for s in range(0, len(ijk), chunk):
+            if check is not None:
+                check()
+            out[s : s + chunk] = f(pts[s : s + chunk])
+            if step is not None:
+                done = total_done + min(len(ijk), s + chunk)
+                step(done / max(1, done + expected_rest + (len(ijk) - min(len(ijk), s + chunk))))
+        total_done += len(ijk)
+        return out
+
+    r = lv[0]
+    g = np.arange(r + 1, dtype=np.int64)
+    nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+    # Rough guess of the work left after the coarse grid: each finer level costs about as much.
+    values = run(nodes, r, expected_rest=len(nodes) * (len(lv) - 1))
+    keys = node_keys(nodes, r)  # meshgrid order is already sorted by key
+    per_level.append((r, len(nodes)))
+    crossing = _crossing_dense(values.reshape(r + 1, r + 1, r + 1))
+
+    for li in range(1, len(lv)):
+        r_prev, r = lv[li - 1], lv[li]
+        active = _dilate(crossing, r_prev) if len(crossing) else crossing
+        # The 27 nodes of the 8 children of each active cell, on the finer grid.
+        child_nodes = (2 * active[:, None, :] + _CHILD_NODES[None]).reshape(-1, 3)
+        new_keys, inverse = np.unique(node_keys(child_nodes, r), return_inverse=True)
+        n = r + 1
+        ijk = np.stack([new_keys // (n * n), (new_keys // n) % n, new_keys % n], axis=1)
+        # Carry over the coarse values at even nodes; evaluate the rest.
+        even = (ijk % 2 == 0).all(axis=1)
+        vals = np.full(len(new_keys), np.nan)
+        vals[even] = _lookup(keys, values, node_keys(ijk[even] // 2, r_prev))
+        todo = np.isnan(vals)
+        remaining_levels = len(lv) - 1 - li
+        vals[todo] = run(ijk[todo], r, expected_rest=4 * int(todo.sum()) * remaining_levels)
+        per_level.append((r, int(todo.sum())))
+        keys, values = new_keys, vals
+        local = vals[inverse].reshape(len(active), 3, 3, 3)
+        which = np.argwhere(_crossing_children(local))  # (parent, a, b, c)
+        crossing = 2 * active[which[:, 0]] + which[:, 1:]
+        # A cell can be the child of only one parent, so these are unique.
+    band = crossing
+
+    if step is not None:
+        step(1.0)
+    return SparseField(
+        resolution=resolution,
+        keys=keys,
+        values=values,
+        band=band,
+        evaluations=total_done,
+        level_evaluations=per_level,
+    )
+
+
+def evaluate_dense(f: Callable[[np.ndarray], np.ndarray], resolution: int, chunk: int = 65536) -> np.ndarray:
+    """All ``(R+1)^3`` node values as an array indexed ``[i, j, k]`` (for tests and comparisons)."""
+    g = np.arange(resolution + 1, dtype=np.int64)
+    nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+    pts = node_positions(nodes, resolution)
+    out = np.concatenate([f(pts[s : s + chunk]) for s in range(0, len(pts), chunk)])
+    return out.reshape(resolution + 1, resolution + 1, resolution + 1)

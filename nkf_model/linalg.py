@@ -1,0 +1,81 @@
+"""Dense float64 factorisations cut into blocks, so that a cancel request is seen between blocks.
+
+A single LAPACK call on a 5,000 x 5,000 matrix runs for about a second on this project's 2-core
+reference CPU; these left-looking blocked versions do the same arithmetic as BLAS-3 products on
+panels of :data:`BLOCK` columns and call ``check()`` after each panel.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import numpy as np
+from scipy.linalg import lapack, solve_triangular
+
+BLOCK = 1024
+# Below this size one LAPACK call takes under about 0.15 s and is not worth splitting.
+SINGLE_CALL = 3000
+# Floating-point operations between two calls of ``check`` (about 0.1-0.2 s on the reference CPU).
+FLOPS_PER_CHECK = 5e9
+
+
+class NotPositiveDefinite(np.linalg.LinAlgError):
+    """The matrix handed to :func:`cholesky` is not numerically positive definite."""
+
+
+def cholesky(a: np.ndarray, check: Optional[Callable[[], None]] = None, block: int = BLOCK) -> np.ndarray:
+    """Lower Cholesky factor ``L`` with ``a = L L^T``, computed in place of a copy of ``a``.
+
+    Only the lower triangle of ``a`` (n, n) float64 is read. Raises :class:`NotPositiveDefinite`.
+    """
+    n = a.shape[0]
+    if n <= SINGLE_CALL:
+        L, info = lapack.dpotrf(np.asarray(a, dtype=np.float64), lower=1, clean=1)
+        if info != 0:
+            raise NotPositiveDefinite(f"leading minor {info} is not positive definite")
+        if check is not None:
+            check()
+        return L
+    L = np.array(a, dtype=np.float64, order="C", copy=True)
+    for k in range(0, n, block):
+        e = min(n, k + block)
+        if k > 0:
+            # Panel update with the finished columns: L[k:, k:e] -= L[k:, :k] @ L[k:e, :k]^T,
+            # in row chunks so that cancellation is seen often.
+            right = np.ascontiguousarray(L[k:e, :k].T)
+            rows = max(256, int(FLOPS_PER_CHECK / (2.0 * k * (e - k))))
+            for r in range(k, n, rows):
+                L[r : r + rows, k:e] -= L[r : r + rows, :k] @ right
+                if check is not None:
+                    check()
+        d, info = lapack.dpotrf(L[k:e, k:e], lower=1, clean=1)
+        if info != 0:
+            raise NotPositiveDefinite(f"leading minor {k + info} is not positive definite")
+        L[k:e, k:e] = d
+        if e < n:
+            L[e:, k:e] = solve_triangular(d, L[e:, k:e].T, lower=True, check_finite=False).T
+            L[k:e, e:] = 0.0
+        if check is not None:
+            check()
+    return L
+
+
+def gram_of_factor(L: np.ndarray, check: Optional[Callable[[], None]] = None, block: int = BLOCK) -> np.ndarray:
+    """``S = L^T L`` for lower-triangular ``L`` (n, n); only the lower triangle of ``S`` is filled."""
+    n = L.shape[0]
+    S = np.zeros_like(L)
+    for i in range(0, n, block):
+        e = min(n, i + block)
+        # S[i:e, :e] = L[i:, i:e]^T L[i:, :e]  (L[k, i:e] = 0 for k < i)
+        left = np.ascontiguousarray(L[i:, i:e].T)
+        cols = max(256, int(FLOPS_PER_CHECK / (2.0 * (e - i) * (n - i))))
+        for c in range(0, e, cols):
+            S[i:e, c : min(e, c + cols)] = left @ L[i:, c : min(e, c + cols)]
+            if check is not None:
+                check()
+    return S
+
+
+def solve_lower(L: np.ndarray, b: np.ndarray, transpose: bool = False) -> np.ndarray:
+    """Solve ``L x = b`` (or ``L^T x = b`` when ``transpose``) for lower-triangular ``L``."""
+    return solve_triangular(L, b, lower=True, trans="T" if transpose else "N", check_finite=False)
