@@ -86,6 +86,25 @@ def gsum4(q, c0_, c1_, c2_, c3_, beta):
 
 
 @nb.njit(inline="always", **_OPTS)
+def _row_g4(q, i, ct, buf):
+    """buf[j] = g(|q[i] - c[j]|^2) for 4-D unit vectors, centres transposed (4, M)."""
+    q0 = q[i, 0]
+    q1 = q[i, 1]
+    q2 = q[i, 2]
+    q3 = q[i, 3]
+    r0 = ct[0]
+    r1 = ct[1]
+    r2 = ct[2]
+    r3 = ct[3]
+    for j in range(ct.shape[1]):
+        t0 = q0 - r0[j]
+        t1 = q1 - r1[j]
+        t2 = q2 - r2[j]
+        t3 = q3 - r3[j]
+        buf[j] = _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+
+
+@nb.njit(inline="always", **_OPTS)
 def _row_g(q, i, ct, j0, j1, buf):
     """buf[:j1-j0] = g(|q[i] - c[j]|^2) for centres j0..j1 given transposed (D, M)."""
     n = j1 - j0
@@ -128,8 +147,12 @@ def gmatrix(q, ct):
     nq = q.shape[0]
     nc = ct.shape[1]
     out = np.empty((nq, nc))
-    for i in nb.prange(nq):
-        _row_g(q, i, ct, 0, nc, out[i])
+    if ct.shape[0] == 4:
+        for i in nb.prange(nq):
+            _row_g4(q, i, ct, out[i])
+    else:
+        for i in nb.prange(nq):
+            _row_g(q, i, ct, 0, nc, out[i])
     return out
 
 
@@ -148,7 +171,10 @@ def gnormal(q, ct, u, v, w, nchunks):
         buf = np.empty(nc)
         a = acc[c]
         for i in range(c * step, min(nq, (c + 1) * step)):
-            _row_g(q, i, ct, 0, nc, buf)
+            if ct.shape[0] == 4:
+                _row_g4(q, i, ct, buf)
+            else:
+                _row_g(q, i, ct, 0, nc, buf)
             t = 0.0
             for j in range(nc):
                 t += buf[j] * u[j]

@@ -1,0 +1,300 @@
+"""Benchmark: ``splines`` against screened Poisson on the corpus's validation meshes.
+
+Run ``python -m nkf_model.bench`` (Poisson needs the ``bench`` extra: Open3D, which on Debian also
+needs ``libusb-1.0-0``). It prints Markdown tables:
+
+1. quality and cost per (points, noise, method): IoU, Chamfer-L1, normal consistency, F-score
+   (ConvONet protocol, see :mod:`nkf_model.metrics`), wall time of the reconstruction call, and
+   its peak memory (resident-set growth over the call, sampled every 5 ms);
+2. ``--tradeoff``: solver size (Nystrom centres) against IoU and time at 10,000 points;
+3. ``--growth``: grid points and kernel evaluations from resolution 64 to 512.
+
+Reference samples and occupancies of each validation mesh are cached in ``--cache``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from . import corpus, metrics
+from .reconstruct import reconstruct
+
+N_EVAL = 100_000
+DEFAULT_RES = {300: 128, 1000: 128, 3000: 128, 10000: 256}
+
+
+class PeakRSS:
+    """Peak resident-set growth of this process during a ``with`` block, in bytes."""
+
+    def __init__(self, interval=0.005):
+        self.interval = interval
+        self.peak = 0
+
+    @staticmethod
+    def _rss():
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self._rss() - self.base)
+            time.sleep(self.interval)
+
+    def __enter__(self):
+        self.base = self._rss()
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._t.join()
+        self.peak = max(self.peak, self._rss() - self.base)
+
+
+def reference(entry, cache: Path):
+    """Cached reference samples of a corpus mesh: surface points/normals, volume points, occupancy."""
+    cache.mkdir(parents=True, exist_ok=True)
+    path = cache / f"{entry.name}.npz"
+    if path.exists():
+        d = np.load(path)
+        return {k: d[k] for k in d.files}
+    v, f = corpus.load(entry)
+    rng = np.random.default_rng(corpus.stable_seed("reference", entry.name))
+    sp, sn = metrics.sample_surface(v, f, N_EVAL, rng)
+    vol = metrics.volume_points(N_EVAL, rng)
+    occ = metrics.occupancy(v, f, vol)
+    d = {"surf_pts": sp, "surf_nrm": sn, "vol_pts": vol, "vol_occ": occ}
+    np.savez_compressed(path, **d)
+    return d
+
+
+def _mesh_occupancy(v, f, q):
+    try:
+        import open3d as o3d
+    except ImportError:
+        return metrics.occupancy(v, f, q)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(v, np.float32)), o3d.core.Tensor(np.asarray(f, np.uint32)))
+    occ = scene.compute_occupancy(o3d.core.Tensor(np.asarray(q, np.float32)), nsamples=3)
+    return occ.numpy() > 0.5
+
+
+def score(v, f, ref, seed):
+    """All metrics of a predicted mesh (in the reference's unit box) against cached reference data."""
+    if len(f) == 0:
+        return {"iou": 0.0, "chamfer_l1": float("nan"), "normal_consistency": 0.0, "fscore": 0.0}
+    rng = np.random.default_rng(seed)
+    pp, pn = metrics.sample_surface(v, f, N_EVAL, rng)
+    out = metrics.surface_metrics(pp, pn, ref["surf_pts"], ref["surf_nrm"])
+    out["iou"] = metrics.iou(_mesh_occupancy(v, f, ref["vol_pts"]), ref["vol_occ"])
+    return out
+
+
+def run_splines(pts, nrm, resolution, **kw):
+    m = reconstruct(pts, nrm, method="splines", resolution=resolution, device="cpu", **kw)
+    return m.vertices.astype(np.float64), m.faces, m.stats
+
+
+def run_poisson(pts, nrm, depth=8):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pcd.normals = o3d.utility.Vector3dVector(nrm)
+    mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
+    return np.asarray(mesh.vertices), np.asarray(mesh.triangles), {}
+
+
+def measure(fn, *args, **kw):
+    with PeakRSS() as mem:
+        t0 = time.perf_counter()
+        try:
+            v, f, stats = fn(*args, **kw)
+            err = None
+        except Exception as exc:  # a failure is a result of the benchmark, not a crash
+            v, f, stats, err = np.zeros((0, 3)), np.zeros((0, 3), np.int64), {}, str(exc)
+        dt = time.perf_counter() - t0
+    return v, f, stats, dt, mem.peak, err
+
+
+def machine() -> str:
+    cpu = "unknown CPU"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import numba
+    import scipy
+
+    return (
+        f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}, "
+        f"scipy {scipy.__version__}, numba {numba.__version__}"
+    )
+
+
+def warm_up():
+    """Compile (or load from numba's cache) every kernel before timing anything."""
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(400, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    reconstruct(p, p, resolution=32, device="cpu")
+    reconstruct(p, p, resolution=32, device="cpu", max_centres=300)
+
+
+def main_table(entries, points, noises, methods, cache, res_override=None, log=print):
+    rows = []
+    for n in points:
+        res = res_override or DEFAULT_RES.get(n, 128)
+        for noise in noises:
+            for method in methods:
+                results = []
+                for e in entries:
+                    ref = reference(e, cache)
+                    v0, f0 = corpus.load(e)
+                    pts, nrm = corpus.sample_input(v0, f0, n, noise, corpus.stable_seed("input", e.name, n, noise))
+                    if method == "splines":
+                        v, f, stats, dt, mem, err = measure(run_splines, pts, nrm, res)
+                    else:
+                        v, f, stats, dt, mem, err = measure(run_poisson, pts, nrm)
+                    s = score(v, f, ref, corpus.stable_seed("score", e.name, n, noise, method))
+                    s.update(time=dt, mem=mem, err=err, mesh=e.name)
+                    results.append(s)
+                    log(
+                        f"  {method:8s} n={n:6d} noise={noise:<6} {e.name:40s} IoU {s['iou']:.3f} "
+                        f"CD {s['chamfer_l1']:.4f} t {dt:6.2f}s mem {mem / 2**20:7.0f} MiB"
+                        + (f"  FAILED: {err}" if err else "")
+                    )
+                rows.append((n, res, noise, method, results))
+    return rows
+
+
+def format_main(rows) -> str:
+    out = [
+        "| points | resolution | noise | method | IoU | Chamfer-L1 | normal consistency | F-score (1%) "
+        "| mean time (s) | max time (s) | peak memory (MiB) | failures |",
+        "|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for n, res, noise, method, results in rows:
+        ok = [r for r in results if not r["err"]]
+        cds = [r["chamfer_l1"] for r in ok]
+        res_s = str(res) if method == "splines" else "depth 8"
+        out.append(
+            f"| {n} | {res_s} | {noise} | {method} | {statistics.mean(r['iou'] for r in results):.4f} "
+            f"| {statistics.mean(cds) if cds else float('nan'):.5f} "
+            f"| {statistics.mean(r['normal_consistency'] for r in results):.4f} "
+            f"| {statistics.mean(r['fscore'] for r in results):.4f} "
+            f"| {statistics.mean(r['time'] for r in results):.3f} | {max(r['time'] for r in results):.3f} "
+            f"| {max(r['mem'] for r in results) / 2**20:.0f} | {len(results) - len(ok)} |"
+        )
+    return "\n".join(out)
+
+
+def tradeoff(entries, cache, centres_list, n=10000, res=256, log=print) -> str:
+    lines = [
+        f"| Nystrom centres | solver | mean IoU | mean Chamfer-L1 | mean time (s) | mean solve (s) |",
+        "|---:|---|---:|---:|---:|---:|",
+    ]
+    for c in centres_list:
+        ious, cds, ts, ss = [], [], [], []
+        solver = ""
+        for e in entries:
+            ref = reference(e, cache)
+            v0, f0 = corpus.load(e)
+            pts, nrm = corpus.sample_input(v0, f0, n, 0.0, corpus.stable_seed("input", e.name, n, 0.0))
+            v, f, stats, dt, mem, err = measure(run_splines, pts, nrm, res, max_centres=c)
+            s = score(v, f, ref, corpus.stable_seed("score", e.name, n, 0.0, "splines"))
+            ious.append(s["iou"])
+            cds.append(s["chamfer_l1"])
+            ts.append(dt)
+            ss.append(stats.get("timings", {}).get("solve", float("nan")))
+            solver = stats.get("solver", "failed")
+            log(f"  centres={c:6d} {e.name:40s} IoU {s['iou']:.3f} t {dt:.2f}s")
+        lines.append(
+            f"| {c} | {solver} | {statistics.mean(ious):.4f} | {statistics.mean(cds):.5f} "
+            f"| {statistics.mean(ts):.2f} | {statistics.mean(ss):.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def growth(entry, n=1000, resolutions=(64, 128, 256, 512), log=print) -> str:
+    v0, f0 = corpus.load(entry)
+    pts, nrm = corpus.sample_input(v0, f0, n, 0.0, corpus.stable_seed("input", entry.name, n, 0.0))
+    lines = [
+        f"| resolution | grid points evaluated | dense grid (R+1)^3 | kernel evaluations | ratio to previous | time (s) |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
+    prev = None
+    for r in resolutions:
+        t0 = time.perf_counter()
+        m = reconstruct(pts, nrm, resolution=r, device="cpu")
+        dt = time.perf_counter() - t0
+        k = m.stats["kernel_evaluations_grid"]
+        ratio = f"{k / prev:.2f}" if prev else ""
+        prev = k
+        lines.append(
+            f"| {r} | {m.stats['grid_points_evaluated']:,} | {(r + 1) ** 3:,} | {k:,} | {ratio} | {dt:.2f} |"
+        )
+        log(f"  growth R={r} evals={k:,} t={dt:.2f}s")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m nkf_model.bench", description=__doc__.split("\n")[0])
+    ap.add_argument("--points", type=int, nargs="+", default=[1000, 10000])
+    ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.005])
+    ap.add_argument("--methods", nargs="+", default=["splines", "poisson"], choices=["splines", "poisson"])
+    ap.add_argument("--resolution", type=int, default=None, help="override the per-size resolution")
+    ap.add_argument("--limit", type=int, default=None, help="use only the first N validation meshes")
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--tradeoff", type=int, nargs="*", default=None, metavar="CENTRES",
+                    help="also print solver size vs IoU/time at 10,000 points for these centre counts")
+    ap.add_argument("--tradeoff-limit", type=int, default=12, help="meshes used for the trade-off table")
+    ap.add_argument("--growth", action="store_true", help="also print kernel evaluations vs resolution")
+    ap.add_argument("--skip-main", action="store_true")
+    ap.add_argument("--cache", type=Path, default=Path(".bench-cache"))
+    ap.add_argument("--out", type=Path, default=None, help="also write the tables to this Markdown file")
+    ap.add_argument("--quiet", action="store_true")
+    args = ap.parse_args(argv)
+    warnings.filterwarnings("ignore", message=".*TBB.*")
+    log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
+
+    entries = [e for e in corpus.manifest() if e.split == args.split]
+    if args.limit:
+        entries = entries[: args.limit]
+    warm_up()
+    parts = [f"Machine: {machine()}", ""]
+    if not args.skip_main:
+        rows = main_table(entries, args.points, args.noise, args.methods, args.cache, args.resolution, log)
+        parts += [f"Meshes: {len(entries)} ({args.split} split)", "", format_main(rows), ""]
+    if args.tradeoff is not None:
+        cl = args.tradeoff or [2000, 4000, 6000, 8000]
+        sub = entries[: args.tradeoff_limit]
+        parts += [f"Solver size at 10,000 points, resolution 256, {len(sub)} meshes:", "",
+                  tradeoff(sub, args.cache, cl, log=log), ""]
+    if args.growth:
+        parts += [f"Kernel evaluations against resolution (1,000 points, {entries[0].name}):", "",
+                  growth(entries[0], log=log), ""]
+    text = "\n".join(parts)
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
