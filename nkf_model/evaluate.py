@@ -9,8 +9,8 @@ Node values are kept in sparse arrays (sorted int64 keys), so memory also grows 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
 
 import numpy as np
 
@@ -143,8 +143,8 @@ def evaluate_sparse(
     resolution: int,
     *,
     chunk: int = 65536,
-    check: Optional[Callable[[], None]] = None,
-    step: Optional[Callable[[float], None]] = None,
+    check: Callable[[], None] | None = None,
+    step: Callable[[float], None] | None = None,
 ) -> SparseField:
     """Evaluate ``f`` coarse to fine around its zero level set.
 

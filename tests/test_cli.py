@@ -198,7 +198,8 @@ def test_bad_input_one_line_no_output(tmp_path, capsys, name):
     assert len(lines) == 1, err
     assert lines[0].startswith("nkf: error:") and expected in lines[0], lines[0]
     assert "Traceback" not in err
-    outs = [p for p in tmp_path.rglob("*") if p.suffix in (".ply", ".obj", ".stl", ".part") and p.name not in ("in.ply", "link.ply")]
+    made = (".ply", ".obj", ".stl", ".part")
+    outs = [p for p in tmp_path.rglob("*") if p.suffix in made and p.name not in ("in.ply", "link.ply")]
     assert outs == []
 
 

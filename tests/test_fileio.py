@@ -69,7 +69,9 @@ def test_truncated_binary_ply(tmp_path):
 
 
 def test_ply_without_vertices_or_positions(tmp_path):
-    (tmp_path / "e.ply").write_text("ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n")
+    (tmp_path / "e.ply").write_text(
+        "ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n"
+    )
     with pytest.raises(PointCloudFileError, match="no 'vertex' element"):
         read_point_cloud(tmp_path / "e.ply")
     (tmp_path / "q.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float q\nend_header\n1\n")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from shapes import sphere_points
 
 from nkf_model.augment import augment
 from nkf_model.engines import cpu_engine
@@ -11,8 +12,6 @@ from nkf_model.errors import Cancelled
 from nkf_model.kernel import homogeneous, ns_kernel
 from nkf_model.normalise import Normalisation
 from nkf_model.solve import KernelFunction, solve_dense, solve_falkon
-
-from shapes import sphere_points
 
 
 def constraints(n=300, eps=0.01, seed=0):
