@@ -10,11 +10,13 @@ NumPy in, NumPy out; no Blender needed. The main entry point is :func:`reconstru
 ``method="splines"`` is the data-free Neural Splines kernel (Williams et al., CVPR 2021).
 """
 
+from .budget import Estimate, estimate
 from .errors import (
     Cancelled,
     DegenerateInputError,
     InvalidParameterError,
     InvalidPointCloudError,
+    MemoryBudgetError,
     MethodUnavailableError,
     MissingNormalsError,
     NKFInputError,
@@ -23,7 +25,9 @@ from .errors import (
     PointCloudFileError,
     TooFewPointsError,
 )
+from .fallback import DeviceWarning
 from .mesh import Mesh
+from .normals import estimate_normals
 from .reconstruct import METHODS, InputWarning, reconstruct
 
 __version__ = "0.1.0"
@@ -44,5 +48,10 @@ __all__ = [
     "OutputPathError",
     "NoSurfaceError",
     "MethodUnavailableError",
+    "MemoryBudgetError",
+    "DeviceWarning",
+    "estimate",
+    "Estimate",
+    "estimate_normals",
     "__version__",
 ]

@@ -46,5 +46,10 @@ class MethodUnavailableError(NKFInputError):
     """The requested method or device is not available in this installation."""
 
 
+class MemoryBudgetError(InvalidParameterError):
+    """The estimated memory of a run exceeds the memory budget; the message says which setting to
+    lower. Raised before any large allocation."""
+
+
 class Cancelled(Exception):
     """The work was stopped because the caller's cancel event was set."""

@@ -33,8 +33,8 @@ class CleanPoints:
     ----------
     points : (N, 3) float64
         Finite positions, in the input's units, without exact duplicates.
-    normals : (N, 3) float64
-        Unit normals.
+    normals : (N, 3) float64 or None
+        Unit normals (``None`` when they were not required and not given).
     index : (N,) int64
         Row of each kept point in the caller's arrays.
     dropped : dict
@@ -78,7 +78,7 @@ def _as_array(name: str, a) -> np.ndarray:
     return arr.astype(np.float64, copy=False)
 
 
-def clean_points(points, normals) -> CleanPoints:
+def clean_points(points, normals, *, require_normals: bool = True, allow_flat: bool = False) -> CleanPoints:
     """Validate and clean oriented points.
 
     Parameters
@@ -86,7 +86,12 @@ def clean_points(points, normals) -> CleanPoints:
     points : array_like, (N, 3)
         Positions, any real dtype, in any units.
     normals : array_like, (N, 3)
-        Normals pointing out of the surface; any positive length (they are normalised).
+        Normals pointing out of the surface; any positive length (they are normalised). May be
+        ``None`` when ``require_normals`` is false (they will be estimated).
+    require_normals : bool
+        Raise :class:`MissingNormalsError` when ``normals`` is ``None``.
+    allow_flat : bool
+        Accept points on a plane (an open scan of a flat surface, trimmed afterwards).
 
     Returns
     -------
@@ -104,7 +109,12 @@ def clean_points(points, normals) -> CleanPoints:
         The points are all identical, or lie on a line or a plane.
     """
     p = _as_array("points", points)
-    n = _as_array("normals", normals)
+    if normals is None and not require_normals:
+        n = np.ones_like(p)  # stand-in, dropped below: only the positions are checked
+        given = False
+    else:
+        n = _as_array("normals", normals)
+        given = True
     if p.shape[0] != n.shape[0]:
         raise InvalidPointCloudError(
             f"points and normals differ in length ({p.shape[0]} and {n.shape[0]})"
@@ -128,7 +138,7 @@ def clean_points(points, normals) -> CleanPoints:
             dropped["duplicates"] = int(len(p) - len(first))
             p, n, index = p[first], n[first], index[first]
 
-    result = CleanPoints(points=p, normals=n, index=index, dropped=dropped)
+    result = CleanPoints(points=p, normals=n if given else None, index=index, dropped=dropped)
     total = int(np.asarray(points).shape[0])
     if len(p) < MIN_POINTS:
         detail = "; ".join(result.warnings())
@@ -136,12 +146,13 @@ def clean_points(points, normals) -> CleanPoints:
             f"{len(p)} usable point{'s' if len(p) != 1 else ''} of {total}; "
             f"at least {MIN_POINTS} are needed" + (f" ({detail})" if detail else "")
         )
-    check_spans_volume(p)
+    check_spans_volume(p, allow_flat=allow_flat)
     return result
 
 
-def check_spans_volume(points: np.ndarray) -> None:
-    """Raise :class:`DegenerateInputError` unless ``points`` (N, 3) span a volume."""
+def check_spans_volume(points: np.ndarray, allow_flat: bool = False) -> None:
+    """Raise :class:`DegenerateInputError` unless ``points`` (N, 3) span a volume (or, with
+    ``allow_flat``, at least a plane)."""
     extent = points.max(axis=0) - points.min(axis=0)
     size = float(extent.max())
     if not size > 0.0 or size <= 1e-12 * max(1.0, float(np.abs(points).max())):
@@ -150,7 +161,7 @@ def check_spans_volume(points: np.ndarray) -> None:
     s = np.linalg.svd(centred, compute_uv=False) / np.sqrt(len(points))
     if s[1] < FLATNESS_TOLERANCE * s[0]:
         raise DegenerateInputError("all points lie on a line: there is no surface to fit")
-    if s[2] < FLATNESS_TOLERANCE * s[0]:
+    if s[2] < FLATNESS_TOLERANCE * s[0] and not allow_flat:
         raise DegenerateInputError(
             "all points lie on a plane: they enclose no volume, so no closed surface can be fit"
         )

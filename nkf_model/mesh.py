@@ -41,6 +41,10 @@ class Mesh:
         for example as a Blender object's location and its mesh.
     stats : dict
         Counts and per-stage timings of the run that made it.
+    colors : (V, 3) uint8 or None
+        Per-vertex colour (8-bit sRGB, as in PLY files) carried from coloured input points; in
+        Blender, a ``BYTE_COLOR`` point attribute (set ``color_srgb`` to ``colors / 255`` plus
+        alpha 1).
     """
 
     vertices: np.ndarray
@@ -50,6 +54,7 @@ class Mesh:
     scale: float = 1.0
     local_vertices: np.ndarray | None = None
     stats: dict = field(default_factory=dict)
+    colors: np.ndarray | None = None
 
     def __post_init__(self):
         if self.local_vertices is None:

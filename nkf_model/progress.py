@@ -19,11 +19,15 @@ ProgressFn = Callable[[float, str], None]
 # progress onto one monotonic fraction.
 STAGE_WEIGHTS = {
     "normalise": 0.01,
+    "reduce": 0.02,
+    "normals": 0.08,
     "augment": 0.01,
     "features": 0.05,
     "solve": 0.33,
     "evaluate": 0.50,
     "mesh": 0.10,
+    "clean": 0.02,
+    "colors": 0.02,
 }
 
 

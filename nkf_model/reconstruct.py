@@ -13,17 +13,25 @@ from collections.abc import Callable
 
 import numpy as np
 
+from . import budget
 from .augment import augment, default_eps
+from .colors import as_rgb8, transfer_colors
 from .engines import select_engine
-from .errors import InvalidParameterError, MethodUnavailableError, NoSurfaceError
-from .evaluate import MAX_RESOLUTION, MIN_RESOLUTION, evaluate_sparse
+from .errors import InvalidParameterError, MethodUnavailableError, MissingNormalsError, NoSurfaceError
+from .evaluate import GRID_HALF, MAX_RESOLUTION, MIN_RESOLUTION, evaluate_sparse
+from .fallback import run_with_cpu_fallback
 from .inputs import clean_points
 from .kernel import homogeneous
 from .mesh import Mesh, triangulate, vertex_normals
 from .normalise import Normalisation
+from .normals import DEFAULT_K as NORMAL_K
+from .normals import check_orientation, check_viewpoints, estimate_normals, median_spacing
+from .pou import fit_pou
 from .progress import Tracker
+from .reduce import voxel_for_count, voxel_reduce
 from .sampling import farthest_point_sample
-from .solve import KernelFunction, solve_dense, solve_falkon
+from .solve import KernelFunction, SolveInfo, solve_dense, solve_falkon
+from .trim import check_trim_settings, clean_scan_mesh
 
 METHODS = ("splines", "nkf")
 DEFAULT_METHOD = "splines"
@@ -32,6 +40,13 @@ DEFAULT_RESOLUTION = 128
 # Up to this many constraints (2 per point) the solve is exact; beyond it, Falkon with this many
 # Nystrom centres. See docs/benchmarks.md for the trade-off of this number against IoU and time.
 DEFAULT_CENTRES = 6000
+# From this many points on, the solve is a partition of unity of small exact solves (nkf_model.pou),
+# which keeps the detail of every point; Falkon with DEFAULT_CENTRES centres smooths it away.
+POU_FROM = 20_000
+# Larger inputs are reduced by voxel-grid averaging to at most this many points (docs/scans.md).
+DEFAULT_REDUCE_TO = 300_000
+NORMALS_MODES = ("auto", "given", "estimate")
+SOLVERS = ("auto", "dense", "falkon", "pou")
 
 
 class InputWarning(UserWarning):
@@ -64,7 +79,7 @@ def check_settings(method, lam, resolution, device, eps, max_centres) -> None:
 
 def reconstruct(
     points,
-    normals,
+    normals=None,
     *,
     method: str = DEFAULT_METHOD,
     lam: float = DEFAULT_LAM,
@@ -75,15 +90,25 @@ def reconstruct(
     eps: float | None = None,
     max_centres: int = DEFAULT_CENTRES,
     seed: int = 0,
+    normals_mode: str = "auto",
+    orientation: str | None = None,
+    viewpoints=None,
+    colors=None,
+    trim: float | None = None,
+    min_piece: float = 0.0,
+    reduce_to: int | None = DEFAULT_REDUCE_TO,
+    solver: str = "auto",
+    memory_budget: float | None = None,
 ) -> Mesh:
-    """Reconstruct a watertight surface from oriented points.
+    """Reconstruct a surface from points (oriented or not).
 
     Parameters
     ----------
     points : array_like, (N, 3)
         Positions in any units and any coordinate frame (float32 or float64).
-    normals : array_like, (N, 3)
-        Outward normals, one per point; any positive length.
+    normals : array_like, (N, 3), optional
+        Outward normals, one per point; any positive length. ``None``: estimated (see
+        ``normals_mode``).
     method : {"splines", "nkf"}
         ``"splines"``: the data-free Neural Splines kernel, no weights needed.
         ``"nkf"``: the learned Neural Kernel Field kernel.
@@ -94,26 +119,59 @@ def reconstruct(
         Cells per side of the marching-cubes grid, 16 to 1024. The grid spans the input's
         bounding box plus 5 % on each side.
     device : {"auto", "cpu", "cuda"}
-        ``"auto"`` uses a CUDA GPU when PyTorch sees one, else the CPU.
+        ``"auto"`` uses a CUDA GPU when PyTorch sees one, else the CPU. If the GPU runs out of
+        memory, the work continues on the CPU with a :class:`~nkf_model.fallback.DeviceWarning`.
     progress : callable, optional
         ``progress(fraction, stage)``: ``fraction`` in [0, 1], ``stage`` one of ``"normalise"``,
-        ``"augment"``, ``"solve"``, ``"evaluate"``, ``"mesh"``, then ``"done"``.
+        ``"reduce"``, ``"normals"``, ``"augment"``, ``"solve"``, ``"evaluate"``, ``"mesh"``,
+        ``"clean"``, ``"colors"``, then ``"done"`` (stages that do not run are skipped).
     cancel : threading.Event, optional
         When set, the work stops within 0.5 s by raising :class:`~nkf_model.errors.Cancelled`.
     eps : float, optional
         Offset of the constraints along the normals, as a fraction of the bounding box's longest
         side. Default: 0.01 up to 3,000 points, then shrinking with the point spacing.
     max_centres : int
-        Largest exact solve (in constraints, 2 per point); larger inputs use this many Nystrom
-        centres.
+        Largest exact solve (in constraints, 2 per point); up to :data:`POU_FROM` points, larger
+        inputs use this many Nystrom centres.
     seed : int
-        Seed for the choice of Nystrom centres.
+        Seed for the choice of Nystrom centres and of thinned patches.
+    normals_mode : {"auto", "given", "estimate"}
+        ``"given"``: ``normals`` are required. ``"estimate"``: ``normals`` are ignored and
+        estimated (PCA over 16 neighbours, oriented by :mod:`nkf_model.normals`). ``"auto"``:
+        given when passed, else estimated, with an :class:`InputWarning` that says so.
+    orientation : {"outward", "up", "viewpoint"}, optional
+        How estimated normals are oriented: away from the object (views from all around),
+        upwards (views from above), or towards ``viewpoints``. Default: ``"viewpoint"`` when
+        ``viewpoints`` are given, else ``"outward"``.
+    viewpoints : (3,) or (K, 3) float, optional
+        Scanner or camera positions, in the frame of ``points``.
+    colors : (N, 3) or (N, 4) array, optional
+        Per-point colours: integers 0-255 or floats 0-1 (alpha ignored). Carried onto the mesh as
+        ``Mesh.colors`` (V, 3) uint8, by inverse-distance weighting of the 8 nearest points.
+    trim : float, optional
+        Cut away the surface farther than ``trim`` point spacings (median nearest-neighbour
+        distance; never less than one grid cell) from every input point, for open scans. ``None``
+        (default) keeps the closed surface. Scans: :data:`nkf_model.trim.SCAN_TRIM`.
+    min_piece : float
+        Remove connected pieces with less than this fraction of the mesh's total area (0 keeps
+        all). Scans: :data:`nkf_model.trim.SCAN_MIN_PIECE`.
+    reduce_to : int, optional
+        Inputs with more points than this are reduced to at most this many by voxel-grid
+        averaging (see :mod:`nkf_model.reduce`); ``None`` never reduces.
+    solver : {"auto", "dense", "falkon", "pou"}
+        ``"auto"``: exact up to ``max_centres`` constraints, Falkon up to :data:`POU_FROM`
+        points, then the partition of unity of local solves (:mod:`nkf_model.pou`).
+    memory_budget : float, optional
+        Bytes the run may use; if :func:`nkf_model.budget.estimate` predicts more, the call
+        raises :class:`~nkf_model.errors.MemoryBudgetError` before any large allocation. Default:
+        :func:`nkf_model.budget.default_memory_budget`.
 
     Returns
     -------
     Mesh
         ``vertices`` (V, 3) float32 in the input's frame, ``faces`` (F, 3) int32 facing out,
-        ``normals`` (V, 3) float32, and ``stats`` (counts, warnings, time per stage in seconds).
+        ``normals`` (V, 3) float32, ``colors`` (V, 3) uint8 or ``None``, and ``stats`` (counts,
+        warnings, time per stage in seconds, what was reduced, estimated and trimmed).
 
     Raises
     ------
@@ -123,40 +181,86 @@ def reconstruct(
         ``cancel`` was set.
     """
     check_settings(method, lam, resolution, device, eps, max_centres)
+    check_scan_settings(normals_mode, normals, solver, reduce_to, trim, min_piece)
     if method == "nkf":
         raise MethodUnavailableError(
             "method 'nkf' needs trained weights, which this version does not ship yet; "
             "use method='splines'"
         )
+    vp = check_viewpoints(viewpoints)
+    orient = check_orientation(orientation, vp)
+    estimate_n = normals_mode == "estimate" or (normals_mode == "auto" and normals is None)
+    n_in = _row_count(points)
+    plan = budget.plan(
+        n_in, resolution=resolution, estimate_normals=estimate_n, solver=solver, max_centres=max_centres,
+        reduce_to=reduce_to, colors=colors is not None, trim=trim is not None,
+    )
+    budget.check(plan, memory_budget)
+
     t_start = time.perf_counter()
     engine = select_engine(device)
-    track = Tracker(progress, cancel)
+    stages = ["normalise"] + (["reduce"] if plan.reduced else []) + (["normals"] if estimate_n else [])
+    stages += ["augment", "solve", "evaluate", "mesh"]
+    stages += (["clean"] if (trim is not None or min_piece > 0) else []) + (["colors"] if colors is not None else [])
+    track = Tracker(progress, cancel, stages=stages)
     track.begin("normalise")
-    clean = clean_points(points, normals)
+    clean = clean_points(points, None if estimate_n else normals, require_normals=not estimate_n,
+                         allow_flat=trim is not None)
     for line in clean.warnings():
         warnings.warn(line, InputWarning, stacklevel=2)
+    rgb = None if colors is None else as_rgb8(colors, n_in)[clean.index]
     norm = Normalisation.fit(clean.points)
     x = norm.to_unit(clean.points)
+    nrm = clean.normals
+    reduction = None
+    if plan.reduced and len(x) > reduce_to:
+        track.begin("reduce")
+        cell = 2.0 * GRID_HALF / resolution
+        voxel = voxel_for_count(x, reduce_to, start=0.25 * cell)
+        red = voxel_reduce(x, nrm, rgb, voxel)
+        x, nrm, rgb = red.points, red.normals, red.colors
+        reduction = {"voxel": voxel * norm.scale, "from": len(clean.points), "to": len(x)}
     n = len(x)
+
+    normal_info = None
+    if estimate_n:
+        track.begin("normals")
+        if normals_mode == "auto":
+            warnings.warn(
+                f"no normals given: estimated them from {NORMAL_K} neighbours, oriented '{orient}'",
+                InputWarning, stacklevel=2,
+            )
+        unit_vp = None if vp is None else norm.to_unit(vp)
+        nrm, normal_info = estimate_normals(x, orientation=orient, viewpoints=unit_vp, check=track.check)
 
     track.begin("augment")
     eps_used = float(eps) if eps is not None else default_eps(n)
-    xa, y = augment(x, clean.normals, eps_used)
+    xa, y = augment(x, nrm, eps_used)
     a = homogeneous(xa)
+    kind = choose_solver(n, max_centres, solver)
 
-    track.begin("solve")
-    if len(a) <= max_centres:
-        alpha, info = solve_dense(a, y, float(lam), engine, check=track.check)
-        centres = a
-    else:
-        half = farthest_point_sample(x, max_centres // 2, seed=seed)
-        idx = np.concatenate([half, half + n])
-        alpha, info = solve_falkon(a, y, idx, float(lam), engine, check=track.check, step=track.step)
-        centres = a[idx]
-    fn = KernelFunction(centres, alpha, engine)
+    def fit_and_evaluate(eng):
+        track.begin("solve")
+        pou_info = None
+        if kind == "dense":
+            alpha, info = solve_dense(a, y, float(lam), eng, check=track.check)
+            fn = KernelFunction(a, alpha, eng)
+            n_centres = len(a)
+        elif kind == "falkon":
+            half = farthest_point_sample(x, min(n, max_centres // 2), seed=seed)
+            idx = np.concatenate([half, half + n])
+            alpha, info = solve_falkon(a, y, idx, float(lam), eng, check=track.check, step=track.step)
+            fn = KernelFunction(a[idx], alpha, eng)
+            n_centres = len(idx)
+        else:
+            fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, check=track.check, step=track.step)
+            info = SolveInfo("pou", len(a), pou_info.centres)
+            n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
+        track.begin("evaluate")
+        field_ = evaluate_sparse(lambda p: fn(p, check=track.check), resolution, check=track.check, step=track.step)
+        return info, pou_info, n_centres, field_, eng
 
-    track.begin("evaluate")
-    field_ = evaluate_sparse(lambda p: fn(p, check=track.check), resolution, check=track.check, step=track.step)
+    info, pou_info, n_centres, field_, engine = run_with_cpu_fallback(fit_and_evaluate, engine)
 
     track.begin("mesh")
     unit_v, faces = triangulate(field_, check=track.check, step=track.step)
@@ -165,11 +269,27 @@ def reconstruct(
             "the fitted function has no zero crossing inside the grid; check that the normals "
             "point out of the surface, or lower lambda"
         )
+    trim_info = None
+    if trim is not None or min_piece > 0:
+        track.begin("clean")
+        spacing = median_spacing(x)
+        faces, kept, trim_info = clean_scan_mesh(
+            unit_v, faces, x, spacing, trim=trim, min_piece=min_piece, floor=2.0 * GRID_HALF / resolution
+        )
+        unit_v = unit_v[kept]
+        if len(faces) == 0:
+            raise NoSurfaceError(
+                "trimming removed the whole surface; raise trim (in point spacings) or lower min_piece"
+            )
     normals_v = vertex_normals(unit_v, faces)
+    vertex_rgb = None
+    if rgb is not None:
+        track.begin("colors")
+        vertex_rgb = transfer_colors(unit_v, x, rgb)
     local = unit_v * norm.scale
     track.finish()
     stats = {
-        "points_in": int(np.asarray(points).shape[0]),
+        "points_in": n_in,
         "points_used": n,
         "dropped": dict(clean.dropped),
         "warnings": clean.warnings(),
@@ -178,12 +298,20 @@ def reconstruct(
         "solver": info.method,
         "centres": info.centres,
         "cg_iterations": info.iterations,
-        "kernel_evaluations_grid": int(field_.evaluations) * len(centres),
+        "kernel_evaluations_grid": int(field_.evaluations) * n_centres,
         "grid_points_evaluated": int(field_.evaluations),
         "level_evaluations": field_.level_evaluations,
         "engine": f"{engine.name}:{engine.device}",
         "vertices": int(len(unit_v)),
         "triangles": int(len(faces)),
+        "reduction": reduction,
+        "normals": "estimated" if estimate_n else "given",
+        "orientation": None if normal_info is None else {
+            "rule": normal_info.orientation, "pieces": normal_info.pieces, "decided_by_views": normal_info.seeded,
+        },
+        "pou": None if pou_info is None else dict(pou_info.__dict__),
+        "trim": None if trim_info is None else dict(trim_info.__dict__),
+        "estimate": plan.as_dict(),
         "timings": dict(track.timings),
         "seconds": time.perf_counter() - t_start,
     }
@@ -194,5 +322,47 @@ def reconstruct(
         center=norm.center.copy(),
         scale=norm.scale,
         local_vertices=local.astype(np.float32),
+        colors=vertex_rgb,
         stats=stats,
     )
+
+
+def _row_count(points) -> int:
+    """Rows of ``points`` without copying it (0 when it has no length)."""
+    shape = getattr(points, "shape", None)
+    if shape is not None and len(shape) >= 1:
+        return int(shape[0])
+    try:
+        return len(points)
+    except TypeError:
+        return 0
+
+
+def choose_solver(n_points: int, max_centres: int, solver: str = "auto") -> str:
+    """The solver ``reconstruct`` uses for ``n_points`` oriented points."""
+    if solver != "auto":
+        return solver
+    if 2 * n_points <= max_centres:
+        return "dense"
+    if n_points < POU_FROM:
+        return "falkon"
+    return "pou"
+
+
+def check_scan_settings(normals_mode, normals, solver, reduce_to, trim, min_piece) -> None:
+    """Raise :class:`InvalidParameterError` for a normals mode, solver, reduction or clean-up
+    setting out of range."""
+    if normals_mode not in NORMALS_MODES:
+        raise InvalidParameterError(f"normals_mode must be one of {', '.join(NORMALS_MODES)}; got {normals_mode!r}")
+    if normals_mode == "given" and normals is None:
+        raise MissingNormalsError(
+            "normals are required with normals_mode='given': pass one unit normal per point, "
+            "or use normals_mode='auto' to estimate them"
+        )
+    if solver not in SOLVERS:
+        raise InvalidParameterError(f"solver must be one of {', '.join(SOLVERS)}; got {solver!r}")
+    if reduce_to is not None and (
+        isinstance(reduce_to, bool) or not isinstance(reduce_to, (int, np.integer)) or reduce_to < 1000
+    ):
+        raise InvalidParameterError(f"reduce_to must be an integer >= 1000 or None, got {reduce_to!r}")
+    check_trim_settings(trim, min_piece)

@@ -1,0 +1,151 @@
+"""Compiled loops for the partition-of-unity solver (see :mod:`nkf_model.pou`).
+
+Patches sit at the nodes of a regular grid with spacing ``h`` starting at ``lo`` (``dims`` nodes per
+axis, flat index ``(i * dims + j) * dims + k``). A point in the cell with lower corner node
+``(i, j, k)`` and fractional position ``t`` in it has weight ``s(1 - t)`` or ``s(t)`` per axis
+towards the cell's 8 corner patches, with ``s(u) = 3u^2 - 2u^3``; since ``s(u) + s(1 - u) = 1`` the
+weights sum to one everywhere (a C1 partition of unity).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from ._numba_kernels import _g
+
+_OPTS = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
+
+
+@nb.njit(inline="always")
+def _smooth(u):
+    return u * u * (3.0 - 2.0 * u)
+
+
+@nb.njit(**_OPTS)
+def gram_general(u, r, diag):  # pragma: no cover - compiled
+    """Kernel matrix ``r_i r_j g(|u_i - u_j|^2) / pi`` (n, n) of unit vectors ``u`` (n, D), plus
+    ``diag`` on the diagonal. Serial: the caller runs several patches in parallel threads."""
+    n, d = u.shape
+    G = np.empty((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(d):
+                t = u[i, k] - u[j, k]
+                s += t * t
+            v = _g(s) * r[i] * r[j] / math.pi
+            G[i, j] = v
+            G[j, i] = v
+        G[i, i] += diag
+    return G
+
+
+@nb.njit(parallel=True, **_OPTS)
+def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0):  # pragma: no cover - compiled
+    """Blended value ``sum_p w_p(x) g_p(x)`` at each query.
+
+    Parameters
+    ----------
+    x : (Nq, 3) float64
+        Unit-box positions (they pick the patches and weights).
+    qu, qr : (Nq, D) float64, (Nq,) float64
+        Unit homogeneous vectors of the queries and their norms.
+    lo, h : float
+        Grid origin and spacing; ``dims`` nodes per axis.
+    start, count : (dims^3,) int64
+        Slice of each patch's centres in ``cu`` / ``beta``; ``count == 0`` means "no local fit",
+        and ``f0`` stands in for it.
+    cu : (D, C) float64
+        Unit centres of all patches, by columns.
+    beta : (C,) float64
+        ``alpha_j * |c_j|`` of each centre.
+    f0 : (Nq,) float64
+        Values of the coarse global fit (only read where a corner patch has no fit).
+    """
+    nq = x.shape[0]
+    d = qu.shape[1]
+    out = np.empty(nq)
+    for i in nb.prange(nq):
+        fx = (x[i, 0] - lo) / h
+        fy = (x[i, 1] - lo) / h
+        fz = (x[i, 2] - lo) / h
+        ix = min(max(int(math.floor(fx)), 0), dims - 2)
+        iy = min(max(int(math.floor(fy)), 0), dims - 2)
+        iz = min(max(int(math.floor(fz)), 0), dims - 2)
+        tx = min(max(fx - ix, 0.0), 1.0)
+        ty = min(max(fy - iy, 0.0), 1.0)
+        tz = min(max(fz - iz, 0.0), 1.0)
+        total = 0.0
+        for a in range(2):
+            wx = _smooth(tx) if a == 1 else _smooth(1.0 - tx)
+            for b in range(2):
+                wy = _smooth(ty) if b == 1 else _smooth(1.0 - ty)
+                for c in range(2):
+                    wz = _smooth(tz) if c == 1 else _smooth(1.0 - tz)
+                    w = wx * wy * wz
+                    if w == 0.0:
+                        continue
+                    p = ((ix + a) * dims + (iy + b)) * dims + (iz + c)
+                    m = count[p]
+                    if m == 0:
+                        total += w * f0[i]
+                        continue
+                    s0 = start[p]
+                    acc = 0.0
+                    if d == 4:
+                        u0 = qu[i, 0]
+                        u1 = qu[i, 1]
+                        u2 = qu[i, 2]
+                        u3 = qu[i, 3]
+                        c0 = cu[0]
+                        c1 = cu[1]
+                        c2 = cu[2]
+                        c3 = cu[3]
+                        for j in range(s0, s0 + m):
+                            t0 = u0 - c0[j]
+                            t1 = u1 - c1[j]
+                            t2 = u2 - c2[j]
+                            t3 = u3 - c3[j]
+                            acc += beta[j] * _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+                    else:
+                        for j in range(s0, s0 + m):
+                            s = 0.0
+                            for k in range(d):
+                                t = qu[i, k] - cu[k, j]
+                                s += t * t
+                            acc += beta[j] * _g(s)
+                    total += w * acc * qr[i] / math.pi
+        out[i] = total
+    return out
+
+
+@nb.njit(**_OPTS)
+def corner_weights(x, lo, h, dims):  # pragma: no cover - compiled
+    """Patch indices (N, 8) int64 and weights (N, 8) float64 of each point's 8 corner patches."""
+    n = x.shape[0]
+    idx = np.empty((n, 8), dtype=np.int64)
+    wts = np.empty((n, 8))
+    for i in range(n):
+        fx = (x[i, 0] - lo) / h
+        fy = (x[i, 1] - lo) / h
+        fz = (x[i, 2] - lo) / h
+        ix = min(max(int(math.floor(fx)), 0), dims - 2)
+        iy = min(max(int(math.floor(fy)), 0), dims - 2)
+        iz = min(max(int(math.floor(fz)), 0), dims - 2)
+        tx = min(max(fx - ix, 0.0), 1.0)
+        ty = min(max(fy - iy, 0.0), 1.0)
+        tz = min(max(fz - iz, 0.0), 1.0)
+        q = 0
+        for a in range(2):
+            wx = _smooth(tx) if a == 1 else _smooth(1.0 - tx)
+            for b in range(2):
+                wy = _smooth(ty) if b == 1 else _smooth(1.0 - ty)
+                for c in range(2):
+                    wz = _smooth(tz) if c == 1 else _smooth(1.0 - tz)
+                    idx[i, q] = ((ix + a) * dims + (iy + b)) * dims + (iz + c)
+                    wts[i, q] = wx * wy * wz
+                    q += 1
+    return idx, wts

@@ -1,0 +1,475 @@
+"""Normals for point clouds that have none: PCA estimation and consistent orientation.
+
+Two steps, both on the CPU with SciPy:
+
+1. :func:`pca_normals`: the normal of each point is the direction of least variance of its ``k``
+   nearest neighbours (a KD-tree query and a batched 3x3 eigen-decomposition). Its sign is arbitrary.
+2. :func:`orient_normals`: signs made consistent by propagation along a minimum spanning tree of the
+   neighbour graph (Hoppe et al., SIGGRAPH 1992). Edge ``(i, j)`` costs ``1 - |n_i . n_j|`` (Hoppe's
+   Riemannian graph) plus ``|n_i . d_ij| + |n_j . d_ij|`` for the unit offset ``d_ij`` between the
+   two points: the second term keeps the tree on the surface, off the short edges that jump across a
+   thin plate, where flipping to agree with the neighbour would give both sides the same direction.
+   Each connected piece then gets its global sign from a hint:
+
+   * ``"outward"``: normals point away from the piece's centre, decided by a vote of the points on
+     the piece's convex hull (closed objects);
+   * ``"up"``: the piece's normals point up (+z) on average (terrain, aerial scans);
+   * ``"viewpoint"``: normals face the scanner positions given in ``viewpoints`` (each point votes
+     for the nearest one); afterwards a point whose normal faces away from every viewpoint is
+     flipped, since a scanner only sees surfaces that face it.
+
+All positions are in the caller's units; the functions are scale-free (neighbour offsets are
+normalised).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+from scipy.spatial import cKDTree
+
+from .errors import InvalidParameterError
+
+DEFAULT_K = 16  # neighbours for the PCA fit
+DEFAULT_GRAPH_K = 10  # neighbours per point in the orientation graph
+ORIENTATIONS = ("outward", "up", "viewpoint")
+_CHUNK = 100_000  # points per KD-tree query / eigen-decomposition batch
+
+Check = Optional[Callable[[], None]]
+
+
+@dataclass
+class OrientationInfo:
+    """What :func:`orient_normals` did.
+
+    Attributes
+    ----------
+    orientation : str
+        The hint used: ``"outward"``, ``"up"`` or ``"viewpoint"``.
+    pieces : int
+        Connected pieces of the neighbour graph (each oriented on its own).
+    seeded : int
+        Points whose sign the views decided (the rest was propagated from them).
+    spacing : float
+        Median nearest-neighbour distance of the points, in their units.
+    """
+
+    orientation: str
+    pieces: int
+    seeded: int = 0
+    spacing: float = 0.0
+    hidden: Optional[np.ndarray] = None
+
+
+def check_viewpoints(viewpoints) -> Optional[np.ndarray]:
+    """``None``, or viewpoints as a (K, 3) float64 array; raises :class:`InvalidParameterError`."""
+    if viewpoints is None:
+        return None
+    try:
+        v = np.asarray(viewpoints, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidParameterError(f"viewpoints must be numbers (x, y, z), got {viewpoints!r}") from None
+    if v.ndim == 1:
+        v = v[None, :]
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise InvalidParameterError(f"viewpoints must have shape (3,) or (K, 3), got {np.shape(viewpoints)}")
+    if not np.isfinite(v).all():
+        raise InvalidParameterError("viewpoints must be finite")
+    return v
+
+
+def check_orientation(orientation, viewpoints) -> str:
+    """The orientation rule to use: ``orientation`` if given, else ``"viewpoint"`` when viewpoints
+    are given, else ``"outward"``."""
+    if orientation is None:
+        return "viewpoint" if viewpoints is not None else "outward"
+    if orientation not in ORIENTATIONS:
+        raise InvalidParameterError(f"orientation must be one of {', '.join(ORIENTATIONS)}; got {orientation!r}")
+    if orientation == "viewpoint" and viewpoints is None:
+        raise InvalidParameterError("orientation 'viewpoint' needs the scanner positions: pass viewpoints")
+    return orientation
+
+
+def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] = None, check: Check = None):
+    """Unoriented unit normals by PCA over the ``k`` nearest neighbours.
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+        Positions (any units).
+    k : int
+        Neighbours per point, the point itself included (clipped to N).
+    tree : cKDTree, optional
+        A tree already built on ``points``.
+
+    Returns
+    -------
+    normals : (N, 3) float64
+        Unit vectors, sign arbitrary.
+    variation : (N,) float64
+        Surface variation ``l0 / (l0 + l1 + l2)`` of the neighbourhood (0 on a plane, 1/3 for
+        isotropic noise): low values mean a trustworthy normal.
+    """
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    n = len(p)
+    k = int(min(max(k, 3), n))
+    tree = tree if tree is not None else cKDTree(p)
+    normals = np.empty((n, 3))
+    variation = np.empty(n)
+    for s in range(0, n, _CHUNK):
+        if check is not None:
+            check()
+        e = min(n, s + _CHUNK)
+        _, idx = tree.query(p[s:e], k=k, workers=-1)
+        nb = p[idx]  # (c, k, 3)
+        nb -= nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("cki,ckj->cij", nb, nb)
+        w, vec = np.linalg.eigh(cov)
+        normals[s:e] = vec[:, :, 0]
+        total = w.sum(axis=1)
+        variation[s:e] = np.divide(w[:, 0], total, out=np.full(e - s, 1.0 / 3.0), where=total > 0)
+    return normals, variation
+
+
+def _graph(points, normals, tree, k, check: Check):
+    """Symmetric k-nearest-neighbour graph with orientation costs as a sparse matrix."""
+    n = len(points)
+    k = int(min(k + 1, n))
+    rows, cols, cost = [], [], []
+    for s in range(0, n, _CHUNK):
+        if check is not None:
+            check()
+        e = min(n, s + _CHUNK)
+        dist, idx = tree.query(points[s:e], k=k, workers=-1)
+        i = np.repeat(np.arange(s, e), k - 1)
+        j = idx[:, 1:].reshape(-1)
+        d = dist[:, 1:].reshape(-1)
+        ok = (j < n) & (d > 0)
+        i, j, d = i[ok], j[ok], d[ok]
+        off = (points[j] - points[i]) / d[:, None]
+        cos = np.abs(np.sum(normals[i] * normals[j], axis=1))
+        across = np.abs(np.sum(normals[i] * off, axis=1)) + np.abs(np.sum(normals[j] * off, axis=1))
+        # Along the surface (offset in both tangent planes) or straight across a thin plate or gap
+        # (offset along both normals): either is a confident edge; anything between is not.
+        c = (1.0 - cos) + np.minimum(across, 2.0 - across)
+        rows.append(i)
+        cols.append(j)
+        cost.append(c + 1e-9)  # explicit zeros would be read as missing edges
+    g = coo_matrix((np.concatenate(cost), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+    return g.maximum(g.T)  # symmetric (an edge found from either end)
+
+
+try:
+    import numba as _nb
+
+    @_nb.njit(cache=True, nogil=True)
+    def _propagate_signs(order, pred, points, normals, start):  # pragma: no cover - compiled
+        sign = start.copy()
+        for pos in range(order.shape[0]):
+            v = order[pos]
+            p = pred[v]
+            if p >= 0:
+                sign[v] = sign[p] * _relation(points, normals, p, v)
+        return sign
+
+    @_nb.njit(cache=True, nogil=True)
+    def _relation(points, normals, i, j):  # pragma: no cover - compiled
+        """+1 if oriented normals i and j should agree in sign as estimated, -1 if one flips."""
+        dot = normals[i, 0] * normals[j, 0] + normals[i, 1] * normals[j, 1] + normals[i, 2] * normals[j, 2]
+        o0 = points[j, 0] - points[i, 0]
+        o1 = points[j, 1] - points[i, 1]
+        o2 = points[j, 2] - points[i, 2]
+        length = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
+        across = 0.0
+        if length > 0:
+            a = abs(normals[i, 0] * o0 + normals[i, 1] * o1 + normals[i, 2] * o2)
+            b = abs(normals[j, 0] * o0 + normals[j, 1] * o1 + normals[j, 2] * o2)
+            across = (a + b) / length
+        same = 1.0 if dot >= 0 else -1.0
+        # Across a thin plate or a narrow gap the two outward normals point opposite ways.
+        return -same if across > 1.0 else same
+
+except ImportError:  # pragma: no cover - numba is a declared dependency
+
+    def _propagate_signs(order, pred, points, normals, start):
+        sign = start.copy()
+        for v in order:
+            p = pred[v]
+            if p >= 0:
+                off = points[v] - points[p]
+                length = np.linalg.norm(off)
+                across = (abs(normals[p] @ off) + abs(normals[v] @ off)) / length if length > 0 else 0.0
+                same = 1.0 if normals[v] @ normals[p] >= 0 else -1.0
+                sign[v] = sign[p] * (-same if across > 1.0 else same)
+        return sign
+
+
+def fibonacci_directions(n: int, upper_only: bool = False) -> np.ndarray:
+    """``n`` unit vectors (n, 3) spread evenly over the sphere (or the upper half, z > 0)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - i / n if upper_only else 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def _basis(d):
+    """Two unit vectors (3,), (3,) completing the unit direction ``d`` to an orthonormal basis."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = np.cross(d, helper)
+    a /= np.linalg.norm(a)
+    return a, np.cross(d, a)
+
+
+def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=None, check: Check = None):
+    """Signed votes (N,) for each normal from the views in which its point is visible.
+
+    A view is an orthographic projection along one of ``directions`` (unit vectors pointing from
+    the viewer into the scene), or a pinhole camera at one of ``viewpoints`` (six 90-degree faces of
+    a cube map). Each point is drawn as a disc of radius ``2 * spacing`` in its tangent plane into a
+    depth buffer; a point is visible when nothing lies more than ``spacing / 2`` in front of it.
+    A visible point whose normal makes an angle under 78 degrees with the line of sight votes
+    ``+|cos|`` if its normal faces the viewer and ``-|cos|`` if not; the votes are summed.
+    """
+    from . import _orient_kernels as ok
+
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    nrm = np.ascontiguousarray(normals, dtype=np.float64)
+    votes = np.zeros(len(p))
+    weight = np.zeros(len(p))
+    radius = 2.0 * spacing
+    tol = 0.5 * spacing
+    pixel = 0.5 * spacing
+    views = []  # (origin (3,), a, b, d, perspective)
+    centre = 0.5 * (p.min(axis=0) + p.max(axis=0))
+    if directions is not None:
+        for d in np.asarray(directions, dtype=np.float64):
+            d = d / np.linalg.norm(d)
+            a, b = _basis(d)
+            views.append((centre, a, b, d, False))
+    if viewpoints is not None:
+        axes = np.eye(3)
+        for s in np.asarray(viewpoints, dtype=np.float64):
+            for k in range(3):
+                for sgn in (1.0, -1.0):
+                    d = sgn * axes[k]
+                    a, b = _basis(d)
+                    views.append((s, a, b, d, True))
+    for origin, a, b, d, perspective in views:
+        if check is not None:
+            check()
+        rel = p - origin
+        u = rel @ a
+        v = rel @ b
+        w = rel @ d
+        na, nb_, nd = nrm @ a, nrm @ b, nrm @ d
+        if perspective:
+            front = w > 1e-9 * max(1.0, float(np.abs(w).max()))
+            wf = np.where(front, w, np.inf)
+            u = np.where(front, u / wf, np.inf)
+            v = np.where(front, v / wf, np.inf)
+            dist = np.linalg.norm(rel, axis=1)
+            ray = rel / np.maximum(dist, 1e-300)[:, None]
+            cosang = np.sum(nrm * ray, axis=1)
+            inside = front & (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
+            # Angular disc radius and pixel size at each point's distance.
+            wmin = float(w[inside].min()) if inside.any() else 1.0
+            pix = pixel / max(float(np.median(w[inside])) if inside.any() else 1.0, wmin)
+            vis = ok.zbuffer_visible(u, v, dist, np.zeros_like(u), np.zeros_like(u), radius / np.maximum(w, 1e-300),
+                                     inside, pix, -1.0, 1.0, tol)
+        else:
+            cosang = nd
+            slope_u = np.clip(-na / np.where(np.abs(nd) > 1e-6, nd, 1e-6), -3.0, 3.0)
+            slope_v = np.clip(-nb_ / np.where(np.abs(nd) > 1e-6, nd, 1e-6), -3.0, 3.0)
+            half = float(max(np.abs(u).max(), np.abs(v).max())) + radius
+            vis = ok.zbuffer_visible(u, v, w, slope_u, slope_v, np.full(len(p), radius),
+                                     np.ones(len(p), dtype=np.bool_), pixel, -half, half, tol)
+        use = vis & (np.abs(cosang) > 0.2)
+        votes[use] -= cosang[use]  # the normal faces the viewer when it points against the ray
+        weight[use] += np.abs(cosang[use])
+    return votes, weight
+
+
+CONSENSUS_ROUNDS = 30
+
+
+def _relations(g, points, normals):
+    """Signed edge weights (sparse, like ``g``): ``w_ij * r_ij`` with ``r_ij = +1`` when the two
+    estimated normals should keep their relative sign, ``-1`` when one of them should flip, and
+    ``w_ij = exp(-cost_ij / 0.2)`` (confident edges weigh about 1, ambiguous ones about 0)."""
+    g = g.tocoo()
+    i, j = g.row, g.col
+    off = points[j] - points[i]
+    length = np.linalg.norm(off, axis=1)
+    off = off / np.maximum(length, 1e-300)[:, None]
+    dot = np.sum(normals[i] * normals[j], axis=1)
+    across = np.abs(np.sum(normals[i] * off, axis=1)) + np.abs(np.sum(normals[j] * off, axis=1))
+    rel = np.where(dot >= 0, 1.0, -1.0) * np.where(across > 1.0, -1.0, 1.0)
+    w = np.exp(-g.data / 0.2)
+    return coo_matrix((w * rel, (i, j)), shape=g.shape).tocsr()
+
+
+def _consensus(g, points, normals, sign, votes, check: Check, rounds: int = CONSENSUS_ROUNDS):
+    """Flip isolated wrong signs: repeatedly give each point the sign its neighbours and its own
+    view votes agree on (iterated conditional modes on ``-sum_ij A_ij s_i s_j - sum_i v_i s_i``).
+    Only points whose evidence clearly disagrees with their sign flip, so the iteration settles."""
+    a = _relations(g, points, normals)
+    s = sign.copy()
+    for _ in range(rounds):
+        if check is not None:
+            check()
+        field = a @ s + votes
+        flip = field * s < -0.5
+        if not flip.any():
+            break
+        s[flip] *= -1.0
+    return s
+
+
+def _seeded_propagation(g, points, normals, seed_sign):
+    """Orient every point from the seeds: ``seed_sign`` (N,) is +1/-1 for seeds, 0 elsewhere.
+
+    Seeds hang from a virtual root; the rest joins the seeds along the minimum spanning tree of the
+    neighbour graph ``g`` and takes its sign from its parent. Pieces without any seed start from
+    their first point with its current sign. Returns signs (N,) and the number of pieces.
+    """
+    n = normals.shape[0]
+    n_pieces, labels = connected_components(g, directed=False)
+    seeded_piece = np.zeros(n_pieces, dtype=bool)
+    seeded_piece[labels[seed_sign != 0]] = True
+    anchors = np.flatnonzero(seed_sign != 0)
+    first = np.full(n_pieces, -1, dtype=np.int64)
+    first[labels[::-1]] = np.arange(n)[::-1]
+    extra = first[~seeded_piece]
+    roots = np.concatenate([anchors, extra])
+    g = g.tocoo()
+    tiny = 1e-12
+    r = np.concatenate([g.row, np.full(len(roots), n)])
+    c = np.concatenate([g.col, roots])
+    w = np.concatenate([g.data, np.full(len(roots), tiny)])
+    full = coo_matrix((w, (r, c)), shape=(n + 1, n + 1)).tocsr()
+    mst = minimum_spanning_tree(full)
+    order, pred = breadth_first_order(mst, n, directed=False, return_predecessors=True)
+    pred = pred.astype(np.int64)
+    pred[pred == n] = -1
+    pred[pred < 0] = -1
+    order = order[order != n].astype(np.int64)
+    start = np.where(seed_sign != 0, seed_sign, 1.0)
+    sign = _propagate_signs(order, pred, points, normals, start)
+    return sign, int(n_pieces)
+
+
+N_VIEWS = 64  # orthographic views for "outward" (all around) and "up" (upper half)
+# A point's sign is taken from the views when the votes agree this much (|sum| / sum of |votes|);
+# otherwise it is propagated from its neighbours.
+VOTE_AGREEMENT = 0.5
+# ... and when their total weight (about the number of views that saw the point face-on) is at least
+# this: points seen from only one or two views are mostly seen through gaps between the discs.
+VOTE_WEIGHT = 3.0
+
+
+def median_spacing(points: np.ndarray, tree: Optional[cKDTree] = None, sample: int = 20000) -> float:
+    """Median distance from a point to its nearest neighbour (on a fixed subsample of at most
+    ``sample`` points), in the units of ``points``."""
+    p = np.asarray(points, dtype=np.float64)
+    tree = tree if tree is not None else cKDTree(p)
+    idx = np.random.default_rng(0).choice(len(p), min(sample, len(p)), replace=False)
+    d, _ = tree.query(p[idx], k=2, workers=-1)
+    return float(np.median(d[:, 1]))
+
+
+def orient_normals(
+    points: np.ndarray,
+    normals: np.ndarray,
+    *,
+    orientation: str = "outward",
+    viewpoints=None,
+    k: int = DEFAULT_GRAPH_K,
+    tree: Optional[cKDTree] = None,
+    check: Check = None,
+):
+    """Give unoriented unit normals consistent signs.
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+    normals : (N, 3) float64
+        Unit normals of arbitrary sign (for example from :func:`pca_normals`).
+    orientation : {"outward", "up", "viewpoint"}
+        Which views vote (see the module docstring).
+    viewpoints : (3,) or (K, 3) float, optional
+        Scanner positions, in the same frame as ``points`` (needed for ``"viewpoint"``).
+    k : int
+        Neighbours per point in the propagation graph.
+
+    Returns
+    -------
+    normals : (N, 3) float64
+        Oriented unit normals.
+    info : OrientationInfo
+    """
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    nrm = np.ascontiguousarray(normals, dtype=np.float64)
+    vp = check_viewpoints(viewpoints)
+    orientation = check_orientation(orientation, vp)
+    tree = tree if tree is not None else cKDTree(p)
+    spacing = median_spacing(p, tree)
+    if orientation == "viewpoint":
+        votes, weight = visibility_votes(p, nrm, spacing, viewpoints=vp, check=check)
+    else:
+        dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
+        votes, weight = visibility_votes(p, nrm, spacing, directions=-dirs, check=check)
+    agree = np.divide(np.abs(votes), weight, out=np.zeros_like(votes), where=weight > 0)
+    seed = np.where((agree >= VOTE_AGREEMENT) & (weight >= VOTE_WEIGHT), np.sign(votes), 0.0)
+    hidden = weight == 0
+    if check is not None:
+        check()
+    g = _graph(p, nrm, tree, k, check)
+    sign, pieces = _seeded_propagation(g, p, nrm, seed)
+    sign = _consensus(g, p, nrm, sign, votes, check)
+    info = OrientationInfo(orientation=orientation, pieces=pieces,
+                           seeded=int((seed != 0).sum()), spacing=spacing, hidden=hidden)
+    return nrm * sign[:, None], info
+
+
+def estimate_normals(
+    points: np.ndarray,
+    *,
+    k: int = DEFAULT_K,
+    orientation: Optional[str] = None,
+    viewpoints=None,
+    check: Check = None,
+):
+    """Oriented unit normals for a point cloud without normals.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        Positions in any units (finite, no exact duplicates: see :func:`nkf_model.inputs.clean_points`).
+    k : int
+        Neighbours for the PCA fit (the orientation graph uses :data:`DEFAULT_GRAPH_K`).
+    orientation : {"outward", "up", "viewpoint"} or None
+        Rule for each piece's global sign; ``None`` picks ``"viewpoint"`` when ``viewpoints`` are
+        given, else ``"outward"``.
+    viewpoints : (3,) or (K, 3) float, optional
+        Scanner or camera positions in the frame of ``points``.
+
+    Returns
+    -------
+    normals : (N, 3) float64
+        Oriented unit normals.
+    info : OrientationInfo
+    """
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 3 <= k <= 200:
+        raise InvalidParameterError(f"normal neighbours k must be an integer from 3 to 200, got {k!r}")
+    vp = check_viewpoints(viewpoints)
+    orientation = check_orientation(orientation, vp)
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    tree = cKDTree(p)
+    nrm, _ = pca_normals(p, k, tree=tree, check=check)
+    return orient_normals(p, nrm, orientation=orientation, viewpoints=vp, tree=tree, check=check)
