@@ -20,7 +20,20 @@ from . import __version__
 from .errors import Cancelled, MissingNormalsError, NKFInputError
 from .evaluate import MAX_RESOLUTION, MIN_RESOLUTION
 from .fileio import check_output_path, read_point_cloud, write_mesh
-from .reconstruct import DEFAULT_LAM, DEFAULT_METHOD, DEFAULT_RESOLUTION, METHODS, check_settings
+from .normals import ORIENTATIONS
+from .reconstruct import (
+    DEFAULT_CENTRES,
+    DEFAULT_LAM,
+    DEFAULT_METHOD,
+    DEFAULT_REDUCE_TO,
+    DEFAULT_RESOLUTION,
+    METHODS,
+    NORMALS_MODES,
+    SOLVERS,
+    check_scan_settings,
+    check_settings,
+)
+from .trim import SCAN_MIN_PIECE, SCAN_TRIM
 
 EXIT_INPUT = 1
 EXIT_INTERNAL = 3
@@ -36,10 +49,11 @@ def _parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
     r = sub.add_parser(
         "reconstruct",
-        help="reconstruct a mesh from a PLY point cloud with normals",
-        description="Reconstruct a watertight mesh from a PLY point cloud with x y z nx ny nz.",
+        help="reconstruct a mesh from a PLY point cloud",
+        description="Reconstruct a mesh from a PLY point cloud with x y z (nx ny nz and red green blue "
+                    "when present; normals are estimated when absent).",
     )
-    r.add_argument("input", help="PLY point cloud (ASCII or binary) with x y z nx ny nz")
+    r.add_argument("input", help="PLY point cloud (ASCII or binary) with x y z, optionally nx ny nz and red green blue")
     r.add_argument("output", help="mesh to write: .ply (binary) or .obj")
     r.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
                    help=f"kernel: 'splines' (data-free Neural Splines) or 'nkf' (learned); default {DEFAULT_METHOD}")
@@ -52,6 +66,34 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--max-points", type=int, default=None, metavar="N",
                    help="use a random subset of at most N points (said on stderr when it applies)")
     r.add_argument("--seed", type=int, default=0, help="seed for --max-points and solver centres (default 0)")
+    s = r.add_argument_group("scans (unoriented, large, open or coloured point clouds)")
+    s.add_argument("--normals", choices=NORMALS_MODES, default="auto",
+                   help="'given': use the file's nx ny nz (required); 'estimate': estimate them (PCA and "
+                        "orientation); 'auto': given if the file has them, else estimate (default)")
+    s.add_argument("--orient", choices=ORIENTATIONS, default=None,
+                   help="orientation of estimated normals: 'outward' (closed objects, default), 'up' "
+                        "(terrain, aerial scans), 'viewpoint' (towards --viewpoint; default when one is given)")
+    s.add_argument("--viewpoint", type=float, nargs=3, action="append", metavar=("X", "Y", "Z"),
+                   help="scanner or camera position in the input's frame (repeat for several)")
+    s.add_argument("--scan", action="store_true",
+                   help=f"the input is an open scan: trim the surface far from the points and drop small "
+                        f"pieces (same as --trim {SCAN_TRIM:g} --min-piece {SCAN_MIN_PIECE:g})")
+    s.add_argument("--trim", type=float, default=None, metavar="K",
+                   help="cut away the surface farther than K point spacings from every point (default: off)")
+    s.add_argument("--min-piece", type=float, default=None, metavar="F",
+                   help="drop connected pieces with less than fraction F of the total area (default 0)")
+    s.add_argument("--no-colors", action="store_true",
+                   help="do not carry the points' red green blue onto the mesh (carried when present)")
+    s.add_argument("--reduce-to", type=int, default=DEFAULT_REDUCE_TO, metavar="N",
+                   help=f"reduce larger inputs to at most N points by voxel-grid averaging "
+                        f"(default {DEFAULT_REDUCE_TO:,}; 0: never)")
+    s.add_argument("--solver", choices=SOLVERS, default="auto",
+                   help="'auto' (default): exact, Falkon or partition of unity by input size")
+    s.add_argument("--memory-budget", type=float, default=None, metavar="GB",
+                   help="refuse to start if the estimated memory exceeds GB gigabytes "
+                        "(default: 60%% of this machine's memory, at most 16)")
+    s.add_argument("--dry-run", action="store_true",
+                   help="print the time and memory estimate and what would be done, then stop")
     r.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     r.add_argument("--debug", action="store_true", help="show the full traceback on errors")
     return ap
@@ -77,27 +119,57 @@ def _progress_bar(quiet: bool):
     return progress, bar.close
 
 
+def _scan_settings(args):
+    """trim, min_piece, reduce_to and memory budget (bytes) from the command line."""
+    trim = args.trim if args.trim is not None else (SCAN_TRIM if args.scan else None)
+    min_piece = args.min_piece if args.min_piece is not None else (SCAN_MIN_PIECE if args.scan else 0.0)
+    reduce_to = None if args.reduce_to == 0 else args.reduce_to
+    budget = None if args.memory_budget is None else args.memory_budget * 2**30
+    if args.memory_budget is not None and not args.memory_budget > 0:
+        raise NKFInputError(f"--memory-budget must be a positive number of gigabytes, got {args.memory_budget}")
+    return trim, min_piece, reduce_to, budget
+
+
 def cmd_reconstruct(args) -> int:
+    from . import budget as budget_mod
     from .reconstruct import reconstruct
 
-    check_settings(args.method, args.lam, args.resolution, args.device, None, 6000)
+    check_settings(args.method, args.lam, args.resolution, args.device, None, DEFAULT_CENTRES)
+    trim, min_piece, reduce_to, memory_budget = _scan_settings(args)
+    check_scan_settings("auto", None, args.solver, reduce_to, trim, min_piece)
     if args.max_points is not None and args.max_points < 10:
         raise NKFInputError(f"--max-points must be at least 10, got {args.max_points}")
     out = check_output_path(args.output)
     t0 = time.perf_counter()
     cloud = read_point_cloud(args.input)
-    if cloud.normals is None:
+    if args.normals == "given" and cloud.normals is None:
         raise MissingNormalsError(
-            f"{args.input}: the points have no normals (nx ny nz); normals are required"
+            f"{args.input}: the points have no normals (nx ny nz); normals are required with "
+            f"--normals given (use --normals auto or estimate to estimate them)"
         )
-    points, normals = cloud.points, cloud.normals
+    estimate_n = args.normals == "estimate" or cloud.normals is None
+    points, normals = cloud.points, (None if estimate_n else cloud.normals)
+    colors = None if args.no_colors else cloud.colors
     if len(points) == 0:
         raise NKFInputError(f"{args.input}: the file holds no points")
     t_read = time.perf_counter() - t0
     if args.max_points is not None and len(points) > args.max_points:
         keep = np.sort(np.random.default_rng(args.seed).choice(len(points), args.max_points, replace=False))
         _say(f"using a random {args.max_points:,} of {len(points):,} points (--max-points)")
-        points, normals = points[keep], normals[keep]
+        points = points[keep]
+        normals = None if normals is None else normals[keep]
+        colors = None if colors is None else colors[keep]
+    est = budget_mod.plan(len(points), resolution=args.resolution, estimate_normals=estimate_n, solver=args.solver,
+                          max_centres=DEFAULT_CENTRES, reduce_to=reduce_to, colors=colors is not None,
+                          trim=trim is not None)
+    if args.dry_run:
+        print(f"{args.input}: {len(points):,} points; estimate: {est.summary()}")
+        budget_mod.check(est, memory_budget)
+        return 0
+    if estimate_n and args.normals == "auto":
+        _say(f"{args.input} has no normals: estimating them (--normals auto)")
+    if est.reduced:
+        _say(f"{len(points):,} points: reducing to at most {reduce_to:,} by voxel-grid averaging (--reduce-to)")
 
     progress, close = _progress_bar(args.quiet)
     cancel = threading.Event()
@@ -105,20 +177,33 @@ def cmd_reconstruct(args) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             mesh = reconstruct(points, normals, method=args.method, lam=args.lam, resolution=args.resolution,
-                               device=args.device, progress=progress, cancel=cancel, seed=args.seed)
+                               device=args.device, progress=progress, cancel=cancel, seed=args.seed,
+                               normals_mode="estimate" if estimate_n else "given", orientation=args.orient,
+                               viewpoints=args.viewpoint, colors=colors, trim=trim, min_piece=min_piece,
+                               reduce_to=reduce_to, solver=args.solver, memory_budget=memory_budget)
     finally:
         close()
     for w in caught:
         _say(f"warning: {w.message}")
     t1 = time.perf_counter()
-    write_mesh(out, mesh.vertices, mesh.faces, mesh.normals)
+    write_mesh(out, mesh.vertices, mesh.faces, mesh.normals, mesh.colors)
     t_write = time.perf_counter() - t1
     if not args.quiet:
         st = mesh.stats
         stages = dict(read=t_read, **st["timings"], write=t_write)
         times = ", ".join(f"{k} {v:.2f}s" for k, v in stages.items())
+        extra = []
+        if st.get("reduction"):
+            extra.append(f"reduced from {st['reduction']['from']:,}")
+        if st.get("normals") == "estimated":
+            extra.append("normals estimated")
+        if st.get("trim"):
+            extra.append(f"{st['trim']['trimmed_faces'] + st['trim']['small_piece_faces']:,} triangles trimmed")
+        if mesh.colors is not None:
+            extra.append("colours")
+        note = f" ({'; '.join(extra)})" if extra else ""
         print(
-            f"{out}: {st['points_used']:,} points -> {st['triangles']:,} triangles "
+            f"{out}: {st['points_used']:,} points{note} -> {st['triangles']:,} triangles "
             f"({st['vertices']:,} vertices) in {time.perf_counter() - t0:.2f}s [{times}]"
         )
     return 0

@@ -173,7 +173,9 @@ def _remove(tmp):
         pass
 
 
-def write_mesh(path, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None) -> Path:
+def write_mesh(
+    path, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None, colors: np.ndarray | None = None
+) -> Path:
     """Write a triangle mesh as binary PLY or as OBJ, chosen by the extension of ``path``.
 
     Parameters
@@ -182,24 +184,31 @@ def write_mesh(path, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarra
     faces : (F, 3) int
     normals : (V, 3) float or None
         Written as ``nx ny nz`` (PLY) or ``vn`` (OBJ) when given.
+    colors : (V, 3) uint8 or None
+        Per-vertex colours, written as ``red green blue`` uchar (PLY) or as ``v x y z r g b``
+        with components in 0-1 (OBJ, as MeshLab and Blender read it).
     """
     p = Path(path)
     v = np.asarray(vertices, dtype=np.float32)
     f = np.asarray(faces, dtype=np.int32)
     n = None if normals is None else np.asarray(normals, dtype=np.float32)
+    c = None if colors is None else np.asarray(colors, dtype=np.uint8)
     if p.suffix.lower() == ".obj":
-        _atomic_write(p, lambda fh: _write_obj(fh, v, f, n))
+        _atomic_write(p, lambda fh: _write_obj(fh, v, f, n, c))
     else:
-        _atomic_write(p, lambda fh: _write_ply_mesh(fh, v, f, n))
+        _atomic_write(p, lambda fh: _write_ply_mesh(fh, v, f, n, c))
     return p
 
 
-def _write_ply_mesh(fh, v, f, n):
+def _write_ply_mesh(fh, v, f, n, c=None):
     props = ["property float x", "property float y", "property float z"]
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if n is not None:
         props += ["property float nx", "property float ny", "property float nz"]
         fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    if c is not None:
+        props += ["property uchar red", "property uchar green", "property uchar blue"]
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
     header = "\n".join(
         ["ply", "format binary_little_endian 1.0", "comment made by nkf_model", f"element vertex {len(v)}"]
         + props
@@ -210,6 +219,8 @@ def _write_ply_mesh(fh, v, f, n):
     rec["x"], rec["y"], rec["z"] = v[:, 0], v[:, 1], v[:, 2]
     if n is not None:
         rec["nx"], rec["ny"], rec["nz"] = n[:, 0], n[:, 1], n[:, 2]
+    if c is not None:
+        rec["red"], rec["green"], rec["blue"] = c[:, 0], c[:, 1], c[:, 2]
     fh.write(rec.tobytes())
     frec = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     frec["n"] = 3
@@ -217,9 +228,13 @@ def _write_ply_mesh(fh, v, f, n):
     fh.write(frec.tobytes())
 
 
-def _write_obj(fh, v, f, n):
+def _write_obj(fh, v, f, n, c=None):
     fh.write(b"# made by nkf_model\n")
-    _write_rows(fh, "v", v, "%.7g")
+    if c is None:
+        _write_rows(fh, "v", v, "%.7g")
+    else:
+        vc = np.concatenate([v.astype(np.float64), c.astype(np.float64) / 255.0], axis=1)
+        _write_rows(fh, "v", vc, "%.7g")
     if n is not None:
         _write_rows(fh, "vn", n, "%.5f")
         _write_rows(fh, "f", f + 1, "%d", pattern="{0}//{0}")
@@ -237,20 +252,35 @@ def _write_rows(fh, tag, arr, fmt, pattern=None, chunk=200_000):
         fh.write((lines + "\n").encode("ascii"))
 
 
-def write_point_cloud(path, points: np.ndarray, normals: np.ndarray) -> Path:
-    """Write oriented points as a binary PLY with ``x y z nx ny nz`` (float32)."""
+def write_point_cloud(path, points: np.ndarray, normals: np.ndarray | None = None,
+                      colors: np.ndarray | None = None) -> Path:
+    """Write points as a binary PLY: ``x y z`` (float32), ``nx ny nz`` (float32) when ``normals``
+    are given, ``red green blue`` (uchar) when ``colors`` (N, 3) uint8 are given."""
     p = Path(path)
     pts = np.asarray(points, dtype=np.float32)
-    nrm = np.asarray(normals, dtype=np.float32)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    rec = np.empty(len(pts), dtype=fields)
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float32)
+        rec["nx"], rec["ny"], rec["nz"] = nrm[:, 0], nrm[:, 1], nrm[:, 2]
+    if colors is not None:
+        col = np.asarray(colors, dtype=np.uint8)
+        rec["red"], rec["green"], rec["blue"] = col[:, 0], col[:, 1], col[:, 2]
+    types = {"<f4": "float", "u1": "uchar"}
 
     def write(fh):
         header = "\n".join(
             ["ply", "format binary_little_endian 1.0", f"element vertex {len(pts)}"]
-            + [f"property float {c}" for c in ("x", "y", "z", "nx", "ny", "nz")]
+            + [f"property {types[t]} {name}" for name, t in fields]
             + ["end_header"]
         )
         fh.write((header + "\n").encode("ascii"))
-        fh.write(np.concatenate([pts, nrm], axis=1).astype("<f4").tobytes())
+        fh.write(rec.tobytes())
 
     _atomic_write(p, write, formats=(".ply",))
     return p

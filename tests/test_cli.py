@@ -129,7 +129,7 @@ def bad_case(tmp_path, name):
         return [src, out], "permission denied"
     if name == "no normals":
         write_ascii_ply(src, p)
-        return [src, out], "normals are required"
+        return [src, out, "--normals", "given"], "normals are required"
     if name == "few points":
         write_point_cloud(src, p[:7], n[:7])
         return [src, out], "at least 10 are needed"

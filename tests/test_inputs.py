@@ -23,7 +23,7 @@ def test_errors_are_value_errors():
 def test_missing_normals():
     p, _ = sphere_points(50)
     with pytest.raises(errors.MissingNormalsError, match="normals are required"):
-        nkf_model.reconstruct(p, None)
+        nkf_model.reconstruct(p, None, normals_mode="given")
 
 
 @pytest.mark.parametrize("bad", ["nan", "inf"])
