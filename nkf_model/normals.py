@@ -3,7 +3,10 @@
 Two steps, both on the CPU with SciPy:
 
 1. :func:`pca_normals`: the normal of each point is the direction of least variance of its ``k``
-   nearest neighbours (a KD-tree query and a batched 3x3 eigen-decomposition). Its sign is arbitrary.
+   nearest neighbours (a KD-tree query and a batched 3x3 eigen-decomposition), refitted twice with
+   weights ``exp(-(r / sigma)^2)`` of each neighbour's distance ``r`` to the current plane, starting
+   from the 7 nearest: on a plate thinner than the neighbourhood, plain PCA mixes both faces into a
+   meaningless normal, the reweighted fit keeps to the point's own face. Its sign is arbitrary.
 2. :func:`orient_normals`: signs made consistent by propagation along a minimum spanning tree of the
    neighbour graph (Hoppe et al., SIGGRAPH 1992). Edge ``(i, j)`` costs ``1 - |n_i . n_j|`` (Hoppe's
    Riemannian graph) plus ``|n_i . d_ij| + |n_j . d_ij|`` for the unit offset ``d_ij`` between the
@@ -37,6 +40,9 @@ from .errors import InvalidParameterError
 
 DEFAULT_K = 16  # neighbours for the PCA fit
 DEFAULT_GRAPH_K = 10  # neighbours per point in the orientation graph
+INITIAL_K = 7  # neighbours of the first plane fit
+REWEIGHTS = 2  # refits with weights that fade off the plane
+SIGMA = 1.0  # width of that fade, in mean distances to the 4 nearest neighbours
 ORIENTATIONS = ("outward", "up", "viewpoint")
 _CHUNK = 100_000  # points per KD-tree query / eigen-decomposition batch
 
@@ -121,18 +127,31 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
     tree = tree if tree is not None else cKDTree(p)
     normals = np.empty((n, 3))
     variation = np.empty(n)
+    k0 = min(k, INITIAL_K)
     for s in range(0, n, _CHUNK):
         if check is not None:
             check()
         e = min(n, s + _CHUNK)
-        _, idx = tree.query(p[s:e], k=k, workers=-1)
+        dist, idx = tree.query(p[s:e], k=k, workers=-1)
         nb = p[idx]  # (c, k, 3)
-        nb -= nb.mean(axis=1, keepdims=True)
-        cov = np.einsum("cki,ckj->cij", nb, nb)
-        w, vec = np.linalg.eigh(cov)
-        normals[s:e] = vec[:, :, 0]
-        total = w.sum(axis=1)
-        variation[s:e] = np.divide(w[:, 0], total, out=np.full(e - s, 1.0 / 3.0), where=total > 0)
+        # Start from the few nearest neighbours (one side of a thin plate), then refit over all k
+        # with weights that fade for points off the current plane (the other side of the plate).
+        w = np.zeros(nb.shape[:2])
+        w[:, :k0] = 1.0
+        sigma = SIGMA * dist[:, 1 : min(k, 5)].mean(axis=1, keepdims=True) + 1e-300
+        for it in range(REWEIGHTS + 1):
+            ws = w / w.sum(axis=1, keepdims=True)
+            centre = np.einsum("ck,cki->ci", ws, nb)
+            d = nb - centre[:, None, :]
+            cov = np.einsum("ck,cki,ckj->cij", ws, d, d)
+            lam, vec = np.linalg.eigh(cov)
+            normal = vec[:, :, 0]
+            if it < REWEIGHTS:
+                r = np.einsum("cki,ci->ck", d, normal)
+                w = np.exp(-((r / sigma) ** 2))
+        normals[s:e] = normal
+        total = lam.sum(axis=1)
+        variation[s:e] = np.divide(lam[:, 0], total, out=np.full(e - s, 1.0 / 3.0), where=total > 0)
     return normals, variation
 
 
@@ -168,45 +187,38 @@ try:
     import numba as _nb
 
     @_nb.njit(cache=True, nogil=True)
-    def _propagate_signs(order, pred, points, normals, start):  # pragma: no cover - compiled
+    def _propagate_signs(order, pred, relation, start):  # pragma: no cover - compiled
         sign = start.copy()
         for pos in range(order.shape[0]):
             v = order[pos]
             p = pred[v]
             if p >= 0:
-                sign[v] = sign[p] * _relation(points, normals, p, v)
+                sign[v] = sign[p] * relation[v]
         return sign
-
-    @_nb.njit(cache=True, nogil=True)
-    def _relation(points, normals, i, j):  # pragma: no cover - compiled
-        """+1 if oriented normals i and j should agree in sign as estimated, -1 if one flips."""
-        dot = normals[i, 0] * normals[j, 0] + normals[i, 1] * normals[j, 1] + normals[i, 2] * normals[j, 2]
-        o0 = points[j, 0] - points[i, 0]
-        o1 = points[j, 1] - points[i, 1]
-        o2 = points[j, 2] - points[i, 2]
-        length = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
-        across = 0.0
-        if length > 0:
-            a = abs(normals[i, 0] * o0 + normals[i, 1] * o1 + normals[i, 2] * o2)
-            b = abs(normals[j, 0] * o0 + normals[j, 1] * o1 + normals[j, 2] * o2)
-            across = (a + b) / length
-        same = 1.0 if dot >= 0 else -1.0
-        # Across a thin plate or a narrow gap the two outward normals point opposite ways.
-        return -same if across > 1.0 else same
 
 except ImportError:  # pragma: no cover - numba is a declared dependency
 
-    def _propagate_signs(order, pred, points, normals, start):
+    def _propagate_signs(order, pred, relation, start):
         sign = start.copy()
         for v in order:
-            p = pred[v]
-            if p >= 0:
-                off = points[v] - points[p]
-                length = np.linalg.norm(off)
-                across = (abs(normals[p] @ off) + abs(normals[v] @ off)) / length if length > 0 else 0.0
-                same = 1.0 if normals[v] @ normals[p] >= 0 else -1.0
-                sign[v] = sign[p] * (-same if across > 1.0 else same)
+            if pred[v] >= 0:
+                sign[v] = sign[pred[v]] * relation[v]
         return sign
+
+
+def edge_relation(points, normals, i, j) -> np.ndarray:
+    """For edges ``(i, j)``: +1 if the estimated normals keep their relative sign, -1 if one flips.
+
+    Along the surface (the offset lies in both tangent planes) they agree; straight across a thin
+    plate or a narrow gap (the offset runs along both normals) the outward normals point opposite
+    ways.
+    """
+    off = points[j] - points[i]
+    off = off / np.maximum(np.linalg.norm(off, axis=1), 1e-300)[:, None]
+    dot = np.sum(normals[i] * normals[j], axis=1)
+    a = np.sum(normals[i] * off, axis=1)
+    b = np.sum(normals[j] * off, axis=1)
+    return np.where(dot >= 0, 1.0, -1.0) * np.where(np.abs(a) + np.abs(b) > 1.0, -1.0, 1.0)
 
 
 def fibonacci_directions(n: int, upper_only: bool = False) -> np.ndarray:
@@ -231,7 +243,7 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
 
     A view is an orthographic projection along one of ``directions`` (unit vectors pointing from
     the viewer into the scene), or a pinhole camera at one of ``viewpoints`` (six 90-degree faces of
-    a cube map). Each point is drawn as a disc of radius ``2 * spacing`` in its tangent plane into a
+    a cube map). Each point is drawn as a disc of radius ``3 * spacing`` in its tangent plane into a
     depth buffer; a point is visible when nothing lies more than ``spacing / 2`` in front of it.
     A visible point whose normal makes an angle under 78 degrees with the line of sight votes
     ``+|cos|`` if its normal faces the viewer and ``-|cos|`` if not; the votes are summed.
@@ -242,7 +254,7 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
     votes = np.zeros(len(p))
     weight = np.zeros(len(p))
-    radius = 2.0 * spacing
+    radius = SPLAT_RADIUS * spacing
     tol = 0.5 * spacing
     pixel = 0.5 * spacing
     views = []  # (origin (3,), a, b, d, perspective)
@@ -304,12 +316,7 @@ def _relations(g, points, normals):
     ``w_ij = exp(-cost_ij / 0.2)`` (confident edges weigh about 1, ambiguous ones about 0)."""
     g = g.tocoo()
     i, j = g.row, g.col
-    off = points[j] - points[i]
-    length = np.linalg.norm(off, axis=1)
-    off = off / np.maximum(length, 1e-300)[:, None]
-    dot = np.sum(normals[i] * normals[j], axis=1)
-    across = np.abs(np.sum(normals[i] * off, axis=1)) + np.abs(np.sum(normals[j] * off, axis=1))
-    rel = np.where(dot >= 0, 1.0, -1.0) * np.where(across > 1.0, -1.0, 1.0)
+    rel = edge_relation(points, normals, i, j)
     w = np.exp(-g.data / 0.2)
     return coo_matrix((w * rel, (i, j)), shape=g.shape).tocsr()
 
@@ -360,7 +367,10 @@ def _seeded_propagation(g, points, normals, seed_sign):
     pred[pred < 0] = -1
     order = order[order != n].astype(np.int64)
     start = np.where(seed_sign != 0, seed_sign, 1.0)
-    sign = _propagate_signs(order, pred, points, normals, start)
+    relation = np.ones(n)
+    child = np.flatnonzero(pred >= 0)
+    relation[child] = edge_relation(points, normals, pred[child], child)
+    sign = _propagate_signs(order, pred, relation, start)
     return sign, int(n_pieces)
 
 
@@ -371,6 +381,8 @@ VOTE_AGREEMENT = 0.5
 # ... and when their total weight (about the number of views that saw the point face-on) is at least
 # this: points seen from only one or two views are mostly seen through gaps between the discs.
 VOTE_WEIGHT = 3.0
+SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
+VIEWPOINT_VOTE_WEIGHT = 0.25
 
 
 def median_spacing(points: np.ndarray, tree: Optional[cKDTree] = None, sample: int = 20000) -> float:
@@ -425,7 +437,9 @@ def orient_normals(
         dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
         votes, weight = visibility_votes(p, nrm, spacing, directions=-dirs, check=check)
     agree = np.divide(np.abs(votes), weight, out=np.zeros_like(votes), where=weight > 0)
-    seed = np.where((agree >= VOTE_AGREEMENT) & (weight >= VOTE_WEIGHT), np.sign(votes), 0.0)
+    # A few scanners give few views: one clear view decides there.
+    min_weight = VOTE_WEIGHT if orientation != "viewpoint" else VIEWPOINT_VOTE_WEIGHT
+    seed = np.where((agree >= VOTE_AGREEMENT) & (weight >= min_weight), np.sign(votes), 0.0)
     hidden = weight == 0
     if check is not None:
         check()

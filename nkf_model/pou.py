@@ -36,7 +36,7 @@ from .kernel import homogeneous, split_unit
 from .sampling import farthest_point_sample
 from .solve import KernelFunction, solve_dense
 
-POINTS_PER_PATCH = 80  # target median of points per patch
+POINTS_PER_PATCH = 50  # target median of points per patch
 MAX_PATCH_POINTS = 4 * POINTS_PER_PATCH  # larger patches are randomly thinned to this
 MIN_PATCH_POINTS = 8  # patches with fewer points use the coarse global fit
 COARSE_POINTS = 1500  # points of the coarse global fit

@@ -1,0 +1,30 @@
+"""Shapes with exact oriented samples for the scan tests (boxes, plates, open hemispheres)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def box_points(n: int, size=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0), seed: int = 0):
+    """``n`` points uniform by area on the surface of an axis-aligned box, outward unit normals."""
+    rng = np.random.default_rng(seed)
+    sx, sy, sz = size
+    areas = np.array([sy * sz, sy * sz, sx * sz, sx * sz, sx * sy, sx * sy])
+    face = rng.choice(6, size=n, p=areas / areas.sum())
+    u = rng.uniform(-0.5, 0.5, size=(n, 3)) * np.array(size)
+    axis = face // 2
+    sign = np.where(face % 2 == 0, 1.0, -1.0)
+    half = np.array(size) / 2
+    u[np.arange(n), axis] = sign * half[axis]
+    nrm = np.zeros((n, 3))
+    nrm[np.arange(n), axis] = sign
+    return u + np.asarray(center), nrm
+
+
+def hemisphere_points(n: int, seed: int = 0):
+    """``n`` points on the upper unit hemisphere (z >= 0), outward normals: an open surface."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d.copy(), d
