@@ -43,8 +43,28 @@ def gram_general(u, r, diag):  # pragma: no cover - compiled
     return G
 
 
+@nb.njit(inline="always")
+def _trilinear(grid, lo, step, x0, x1, x2):
+    n = grid.shape[0] - 1
+    f0 = min(max((x0 - lo) / step, 0.0), n - 1e-9)
+    f1 = min(max((x1 - lo) / step, 0.0), n - 1e-9)
+    f2 = min(max((x2 - lo) / step, 0.0), n - 1e-9)
+    i = int(f0)
+    j = int(f1)
+    k = int(f2)
+    a = f0 - i
+    b = f1 - j
+    c = f2 - k
+    return (
+        (1 - a) * ((1 - b) * ((1 - c) * grid[i, j, k] + c * grid[i, j, k + 1])
+                   + b * ((1 - c) * grid[i, j + 1, k] + c * grid[i, j + 1, k + 1]))
+        + a * ((1 - b) * ((1 - c) * grid[i + 1, j, k] + c * grid[i + 1, j, k + 1])
+               + b * ((1 - c) * grid[i + 1, j + 1, k] + c * grid[i + 1, j + 1, k + 1]))
+    )
+
+
 @nb.njit(parallel=True, **_OPTS)
-def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0):  # pragma: no cover - compiled
+def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step):  # pragma: no cover - compiled
     """Blended value ``sum_p w_p(x) g_p(x)`` at each query.
 
     Parameters
@@ -62,8 +82,9 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0):  # pragma: no c
         Unit centres of all patches, by columns.
     beta : (C,) float64
         ``alpha_j * |c_j|`` of each centre.
-    f0 : (Nq,) float64
-        Values of the coarse global fit (only read where a corner patch has no fit).
+    f0 : (G, G, G) float64
+        The coarse global fit sampled on a regular grid from ``f0_lo`` with spacing ``f0_step``;
+        interpolated trilinearly where a corner patch has no fit.
     """
     nq = x.shape[0]
     d = qu.shape[1]
@@ -91,7 +112,7 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0):  # pragma: no c
                     p = ((ix + a) * dims + (iy + b)) * dims + (iz + c)
                     m = count[p]
                     if m == 0:
-                        total += w * f0[i]
+                        total += w * _trilinear(f0, f0_lo, f0_step, x[i, 0], x[i, 1], x[i, 2])
                         continue
                     s0 = start[p]
                     acc = 0.0
@@ -149,3 +170,12 @@ def corner_weights(x, lo, h, dims):  # pragma: no cover - compiled
                     wts[i, q] = wx * wy * wz
                     q += 1
     return idx, wts
+
+
+@nb.njit(parallel=True, **_OPTS)
+def interpolate(grid, lo, step, x):  # pragma: no cover - compiled
+    """Trilinear interpolation (N,) of a node grid (G, G, G) at points (N, 3)."""
+    out = np.empty(x.shape[0])
+    for i in nb.prange(x.shape[0]):
+        out[i] = _trilinear(grid, lo, step, x[i, 0], x[i, 1], x[i, 2])
+    return out

@@ -209,6 +209,47 @@ def format_large(rows, resolution) -> str:
     return "\n".join(lines)
 
 
+def run_estimates(log=print):
+    """Predicted against measured time and peak memory over a spread of inputs and settings."""
+    from .budget import estimate
+
+    entries = {e.name: e for e in corpus.manifest()}
+    cases = [
+        ("quaternius__Donut", 1_000, 128, False), ("quaternius__Donut", 10_000, 256, False),
+        ("quaternius__Donut", 30_000, 256, False), ("kenney__chairRounded", 100_000, 128, False),
+        ("kenney__chairRounded", 100_000, 256, False), ("kenney__chairRounded", 100_000, 256, True),
+        ("quaternius__Donut", 300_000, 256, False), ("quaternius__Donut", 1_000_000, 256, False),
+        ("quaternius__Donut", 1_000_000, 256, True), ("quaternius__Donut", 100_000, 512, False),
+    ]
+    rows = []
+    for name, n, res, est_normals in cases:
+        v0, f0 = corpus.load(entries[name])
+        pts, nrm = corpus.sample_input(v0, f0, n, 0.002, corpus.stable_seed("estimate", name, n))
+        pred = estimate(n, resolution=res, estimate_normals=est_normals)
+
+        def fn(pts=pts, nrm=nrm, res=res, est_normals=est_normals):
+            return reconstruct(pts, None if est_normals else nrm, resolution=res, device="cpu")
+
+        m, dt, mem, err = _measure(fn)
+        stages = "" if m is None else ", ".join(f"{k} {v:.1f}" for k, v in m.stats["timings"].items())
+        grid = 0 if m is None else m.stats["grid_points_evaluated"]
+        rows.append((name, n, res, est_normals, pred, dt, mem, grid, stages, err))
+        log(f"  {name} n={n:,} R={res} normals={'est' if est_normals else 'given'}: predicted "
+            f"{pred.seconds:.1f}s {pred.peak_bytes / 2**20:.0f} MiB, measured {dt:.1f}s {mem / 2**20:.0f} MiB "
+            f"grid {grid:,} [{stages}]" + (f" FAILED {err}" if err else ""))
+    lines = [
+        "| input | points | resolution | normals | solver | predicted time (s) | measured time (s) "
+        "| predicted memory (MiB) | measured peak (MiB) |",
+        "|---|---:|---:|---|---|---:|---:|---:|---:|",
+    ]
+    for name, n, res, est_normals, pred, dt, mem, _, _, _ in rows:
+        lines.append(
+            f"| {name} | {n:,} | {res} | {'estimated' if est_normals else 'given'} | {pred.solver} "
+            f"| {pred.seconds:.1f} | {dt:.1f} | {pred.peak_bytes / 2**20:.0f} | {mem / 2**20:.0f} |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m nkf_model.bench_scenes", description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", type=int, nargs="*", default=[0, 1, 2], help="scene seeds")
@@ -220,6 +261,7 @@ def main(argv=None) -> int:
     ap.add_argument("--large-meshes", nargs="*", default=None, help="meshes for --large (default: 3 val meshes)")
     ap.add_argument("--large-sizes", type=int, nargs="*", default=[100_000, 1_000_000])
     ap.add_argument("--skip-scenes", action="store_true")
+    ap.add_argument("--estimates", action="store_true", help="also predicted against measured time and memory")
     ap.add_argument("--cache", type=Path, default=Path(".bench-cache"))
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--quiet", action="store_true")
@@ -247,6 +289,8 @@ def main(argv=None) -> int:
             entries = [e for e in entries if e.name in ("quaternius__Donut", "kenney__chairRounded", "abc__abc6")]
         rows = run_large(entries, args.large_sizes, args.resolution, args.cache, log)
         parts += ["Large inputs:", "", format_large(rows, args.resolution), ""]
+    if args.estimates:
+        parts += ["Estimates (nkf_model.estimate) against measurements:", "", run_estimates(log), ""]
     text = "\n".join(parts)
     print(text)
     if args.out:

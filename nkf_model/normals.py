@@ -134,24 +134,32 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
         e = min(n, s + _CHUNK)
         dist, idx = tree.query(p[s:e], k=k, workers=-1)
         nb = p[idx]  # (c, k, 3)
-        # Start from the few nearest neighbours (one side of a thin plate), then refit over all k
-        # with weights that fade for points off the current plane (the other side of the plate).
-        w = np.zeros(nb.shape[:2])
-        w[:, :k0] = 1.0
         sigma = SIGMA * dist[:, 1 : min(k, 5)].mean(axis=1, keepdims=True) + 1e-300
-        for it in range(REWEIGHTS + 1):
-            ws = w / w.sum(axis=1, keepdims=True)
-            centre = np.einsum("ck,cki->ci", ws, nb)
-            d = nb - centre[:, None, :]
-            cov = np.einsum("ck,cki,ckj->cij", ws, d, d)
-            lam, vec = np.linalg.eigh(cov)
-            normal = vec[:, :, 0]
-            if it < REWEIGHTS:
+        # Two starts: the few nearest neighbours (one face of a thin plate) and all k (plain PCA).
+        # Each is refitted with weights that fade off its plane; the fit that keeps the most
+        # neighbours on its plane wins.
+        best_score = np.full(e - s, -1.0)
+        for first in (k0, k):
+            w = np.zeros(nb.shape[:2])
+            w[:, :first] = 1.0
+            for it in range(REWEIGHTS + 1):
+                ws = w / w.sum(axis=1, keepdims=True)
+                centre = np.einsum("ck,cki->ci", ws, nb)
+                d = nb - centre[:, None, :]
+                cov = np.einsum("ck,cki,ckj->cij", ws, d, d)
+                lam, vec = np.linalg.eigh(cov)
+                normal = vec[:, :, 0]
                 r = np.einsum("cki,ci->ck", d, normal)
                 w = np.exp(-((r / sigma) ** 2))
-        normals[s:e] = normal
-        total = lam.sum(axis=1)
-        variation[s:e] = np.divide(lam[:, 0], total, out=np.full(e - s, 1.0 / 3.0), where=total > 0)
+            score = w.sum(axis=1)
+            better = score > best_score
+            best_score[better] = score[better]
+            normals[s:e][better] = normal[better]
+            total = lam.sum(axis=1)
+            var = np.divide(lam[:, 0], total, out=np.full(e - s, 1.0 / 3.0), where=total > 0)
+            variation[s:e][better] = var[better]
+            if k0 == k:
+                break
     return normals, variation
 
 
@@ -211,14 +219,17 @@ def edge_relation(points, normals, i, j) -> np.ndarray:
 
     Along the surface (the offset lies in both tangent planes) they agree; straight across a thin
     plate or a narrow gap (the offset runs along both normals) the outward normals point opposite
-    ways.
+    ways; at a sharp edge (normals more than 60 degrees apart) the edge is taken as convex, each
+    normal pointing away from the other point.
     """
     off = points[j] - points[i]
     off = off / np.maximum(np.linalg.norm(off, axis=1), 1e-300)[:, None]
     dot = np.sum(normals[i] * normals[j], axis=1)
     a = np.sum(normals[i] * off, axis=1)
     b = np.sum(normals[j] * off, axis=1)
-    return np.where(dot >= 0, 1.0, -1.0) * np.where(np.abs(a) + np.abs(b) > 1.0, -1.0, 1.0)
+    smooth = np.where(dot >= 0, 1.0, -1.0) * np.where(np.abs(a) + np.abs(b) > 1.0, -1.0, 1.0)
+    convex = -np.where(a >= 0, 1.0, -1.0) * np.where(b >= 0, 1.0, -1.0)
+    return np.where(np.abs(dot) >= 0.5, smooth, convex)
 
 
 def fibonacci_directions(n: int, upper_only: bool = False) -> np.ndarray:
@@ -338,6 +349,39 @@ def _consensus(g, points, normals, sign, votes, check: Check, rounds: int = CONS
     return s
 
 
+def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3):
+    """Flip whole undecided pieces that disagree with their surroundings.
+
+    Points the views did not decide, joined by confident edges (cost < 0.5), form pieces (say the
+    hidden facing sides of two objects that nearly touch). The spanning tree ties each piece to the
+    rest by one edge, which at a sharp edge is a guess; here every edge between the piece and the
+    rest votes, and the piece flips when the votes (``sum r_ij s_i s_j``) say it disagrees."""
+    g = g.tocoo()
+    i, j, cost = g.row, g.col, g.data
+    free = seed == 0
+    inner = free[i] & free[j] & (cost < 0.5)
+    n = len(sign)
+    n_pieces, labels = connected_components(
+        coo_matrix((np.ones(int(inner.sum())), (i[inner], j[inner])), shape=(n, n)), directed=False
+    )
+    rel = edge_relation(points, normals, i, j)
+    boundary = free[i] & (labels[i] != labels[j])
+    bi, bj, br = i[boundary], j[boundary], rel[boundary]
+    # Edges to points the views decided count fully; to other undecided pieces (which may be
+    # wrong themselves) a quarter.
+    bw = np.where(free[bj], 0.25, 1.0)
+    s = sign.copy()
+    for _ in range(rounds):
+        if check is not None:
+            check()
+        vote = np.bincount(labels[bi], weights=bw * br * s[bi] * s[bj], minlength=n_pieces)
+        flip = vote < 0
+        if not flip.any():
+            break
+        s[free & flip[labels]] *= -1.0
+    return s
+
+
 def _seeded_propagation(g, points, normals, seed_sign):
     """Orient every point from the seeds: ``seed_sign`` (N,) is +1/-1 for seeds, 0 elsewhere.
 
@@ -445,6 +489,7 @@ def orient_normals(
         check()
     g = _graph(p, nrm, tree, k, check)
     sign, pieces = _seeded_propagation(g, p, nrm, seed)
+    sign = _flip_pieces(g, p, nrm, sign, seed, check)
     sign = _consensus(g, p, nrm, sign, votes, check)
     info = OrientationInfo(orientation=orientation, pieces=pieces,
                            seeded=int((seed != 0).sum()), spacing=spacing, hidden=hidden)

@@ -12,8 +12,8 @@ function is::
 
 whose weights sum to one everywhere (:mod:`nkf_model._pou_kernels`). Patches with fewer than
 :data:`MIN_PATCH_POINTS` points use a coarse global fit ``f0`` instead (an exact solve on
-:data:`COARSE_POINTS` points picked by farthest-point sampling), which gives the sign far from
-the data. Cost: the local solves are O(N P^2) in total for P points per patch, and every
+:data:`COARSE_POINTS` points picked by farthest-point sampling, sampled once on a 64^3 grid and
+interpolated), which gives the sign far from the data. Cost: the local solves are O(N P^2) in total for P points per patch, and every
 evaluation sums over the centres of 8 patches (about 16 P kernel evaluations), whatever N is.
 """
 
@@ -40,6 +40,7 @@ POINTS_PER_PATCH = 50  # target median of points per patch
 MAX_PATCH_POINTS = 4 * POINTS_PER_PATCH  # larger patches are randomly thinned to this
 MIN_PATCH_POINTS = 8  # patches with fewer points use the coarse global fit
 COARSE_POINTS = 1500  # points of the coarse global fit
+COARSE_GRID = 64  # cells per side of the grid the coarse fit is sampled on
 
 Check = Optional[Callable[[], None]]
 Step = Optional[Callable[[float], None]]
@@ -114,22 +115,25 @@ class PoUFunction:
         self.coarse = coarse
         self.engine = engine
         self.features = features
+        # The coarse fit is smooth and only stands in far from the data: sample it once on a grid
+        # and interpolate, instead of summing its centres at every query.
+        g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
+        nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+        self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
+        self.f0_grid = np.ascontiguousarray(coarse(nodes).reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
 
     def __call__(self, x: np.ndarray, check: Check = None) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)
         phi = None if self.features is None else self.features(x)
         qu, qr = split_unit(homogeneous(x, phi))
-        idx, w = pk.corner_weights(x, self.lo, self.h, self.dims)
-        need = ((self.count[idx] == 0) & (w > 0)).any(axis=1)
-        f0 = np.zeros(len(x))
-        if need.any():
-            f0[need] = self.coarse(x[need], check=check)
         if check is not None:
             check()
         if isinstance(self.engine, NumbaEngine):
             with NumbaEngine._lock:
                 return pk.pou_sum(x, qu, qr, self.lo, self.h, self.dims, self.start, self.count, self.cu,
-                                  self.beta, f0)
+                                  self.beta, self.f0_grid, self.f0_lo, self.f0_step)
+        idx, w = pk.corner_weights(x, self.lo, self.h, self.dims)
+        f0 = pk.interpolate(self.f0_grid, self.f0_lo, self.f0_step, x)
         return self._generic(qu, qr, idx, w, f0, check)
 
     def _generic(self, qu, qr, idx, w, f0, check: Check):

@@ -1,0 +1,109 @@
+"""Normal estimation and orientation (issue 5): spheres, boxes, thin plates, nearby sheets, hints."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scan_shapes import box_points
+from shapes import sphere_points
+
+import nkf_model
+from nkf_model.errors import InvalidParameterError
+from nkf_model.normals import estimate_normals, pca_normals
+
+
+def agreement(estimated, true):
+    return float((np.sum(estimated * true, axis=1) > 0).mean())
+
+
+def test_pca_normals_are_unit_and_fit_planes():
+    p, n = box_points(2000, seed=3)
+    e, variation = pca_normals(p, 16)
+    assert np.allclose(np.linalg.norm(e, axis=1), 1.0)
+    # Away from the box's edges every neighbourhood is planar: the normal is exact up to sign.
+    inner = (np.abs(p) < 0.4).sum(axis=1) == 2
+    assert np.median(np.abs(np.sum(e[inner] * n[inner], axis=1))) > 0.999
+    assert np.median(variation[inner]) < 1e-6
+
+
+@pytest.mark.parametrize("shape", ["sphere", "box"])
+def test_sign_agreement_above_99_percent(shape):
+    p, n = sphere_points(3000, seed=1) if shape == "sphere" else box_points(3000, seed=1)
+    e, info = estimate_normals(p)
+    assert info.orientation == "outward"
+    assert agreement(e, n) > 0.99
+
+
+def test_orientation_is_invariant_to_scale_and_offset():
+    p, n = sphere_points(2000, seed=4)
+    e1, _ = estimate_normals(p)
+    e2, _ = estimate_normals(p * 1e-3 + 1e5)
+    assert agreement(e1, n) > 0.99 and agreement(e2, n) > 0.99
+
+
+def test_thin_plate():
+    # 1 x 1 x 0.04 slab: the two large faces are 4 point spacings apart, closer than the
+    # neighbourhoods, so plain propagation gives both faces the same direction.
+    p, n = box_points(4000, size=(1.0, 1.0, 0.04), seed=2)
+    e, _ = estimate_normals(p)
+    assert agreement(e, n) > 0.95
+    top = n[:, 2] > 0.5
+    bottom = n[:, 2] < -0.5
+    assert (e[top, 2] > 0).mean() > 0.95 and (e[bottom, 2] < 0).mean() > 0.95
+
+
+def test_two_nearby_sheets():
+    # Two slabs 0.03 apart (about 2 spacings): the facing sides point at each other, into the gap.
+    a, na = box_points(3000, size=(1.0, 1.0, 0.1), center=(0, 0, 0.065), seed=3)
+    b, nb = box_points(3000, size=(1.0, 1.0, 0.1), center=(0, 0, -0.065), seed=4)
+    p, n = np.r_[a, b], np.r_[na, nb]
+    e, _ = estimate_normals(p)
+    assert agreement(e, n) > 0.93
+    gap_upper = np.abs(p[:, 2] - 0.015) < 1e-9
+    assert (e[gap_upper, 2] < 0).mean() > 0.85  # the upper slab's lower face points down, into the gap
+
+
+def test_viewpoint_hint_orients_an_open_sheet_towards_the_scanner():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, size=(3000, 2))
+    p = np.c_[xy, 0.05 * np.sin(2 * xy[:, 0])]  # a gently curved open sheet
+    for z, sign in ((3.0, 1.0), (-3.0, -1.0)):
+        e, info = estimate_normals(p, viewpoints=[0.0, 0.0, z])
+        assert info.orientation == "viewpoint"
+        assert (np.sign(e[:, 2]) == sign).mean() > 0.99
+
+
+def test_up_hint():
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-1, 1, size=(2000, 2))
+    p = np.c_[xy, 0.1 * np.cos(3 * xy[:, 1])]
+    e, _ = estimate_normals(p, orientation="up")
+    assert (e[:, 2] > 0).mean() > 0.99
+
+
+def test_bad_hints_are_clear_errors():
+    p, _ = sphere_points(200)
+    with pytest.raises(InvalidParameterError, match="viewpoints"):
+        estimate_normals(p, orientation="viewpoint")
+    with pytest.raises(InvalidParameterError, match="shape"):
+        estimate_normals(p, viewpoints=[[1.0, 2.0]])
+    with pytest.raises(InvalidParameterError, match="orientation"):
+        estimate_normals(p, orientation="sideways")
+    with pytest.raises(InvalidParameterError, match="neighbours"):
+        estimate_normals(p, k=1)
+
+
+def test_reconstruct_estimates_missing_normals_and_says_so():
+    p, _ = sphere_points(1500, seed=5)
+    with pytest.warns(nkf_model.InputWarning, match="no normals given"):
+        m = nkf_model.reconstruct(p, None, resolution=48, device="cpu")
+    assert m.stats["normals"] == "estimated"
+    assert np.abs(np.linalg.norm(m.vertices, axis=1) - 1).max() < 0.03
+    # normals_mode="estimate" ignores given normals (here deliberately wrong ones).
+    m2 = nkf_model.reconstruct(p, -p, resolution=48, device="cpu", normals_mode="estimate")
+    assert m2.stats["normals"] == "estimated"
+    assert np.abs(np.linalg.norm(m2.vertices, axis=1) - 1).max() < 0.03
+    with pytest.raises(nkf_model.MissingNormalsError):
+        nkf_model.reconstruct(p, None, normals_mode="given")
+    with pytest.raises(InvalidParameterError, match="normals_mode"):
+        nkf_model.reconstruct(p, None, normals_mode="guess")
