@@ -13,8 +13,9 @@ function is::
 whose weights sum to one everywhere (:mod:`nkf_model._pou_kernels`). Patches with fewer than
 :data:`MIN_PATCH_POINTS` points use a coarse global fit ``f0`` instead (an exact solve on
 :data:`COARSE_POINTS` points picked by farthest-point sampling, sampled once on a 64^3 grid and
-interpolated), which gives the sign far from the data. Cost: the local solves are O(N P^2) in total for P points per patch, and every
-evaluation sums over the centres of 8 patches (about 16 P kernel evaluations), whatever N is.
+interpolated), which gives the sign far from the data. Cost: the local solves are O(N P^2) in
+total for P points per patch, and every evaluation sums over the centres of 8 patches (about 16 P
+kernel evaluations), whatever N is.
 """
 
 from __future__ import annotations

@@ -277,6 +277,7 @@ def reconstruct(
             unit_v, faces, x, spacing, trim=trim, min_piece=min_piece, floor=2.0 * GRID_HALF / resolution
         )
         unit_v = unit_v[kept]
+        trim_info.threshold *= norm.scale  # report it in the input's units
         if len(faces) == 0:
             raise NoSurfaceError(
                 "trimming removed the whole surface; raise trim (in point spacings) or lower min_piece"
