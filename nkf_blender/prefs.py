@@ -49,7 +49,7 @@ def get_prefs(context=None):
 
 def apply_paths(prefs) -> None:
     """Put the extension's folder and the user's PyTorch folder on ``sys.path`` and re-check."""
-    deps.add_path(user_site())
+    deps.add_path(user_site(create=True))
     if prefs is not None and prefs.torch_path:
         deps.add_path(bpy.path.abspath(prefs.torch_path))
     deps.refresh()
@@ -233,47 +233,51 @@ class NKFPreferences(bpy.types.AddonPreferences):
     )
 
     def draw(self, context):
-        layout = self.layout
-        st = deps.status()
-        box = layout.box()
-        box.label(text="Python packages", icon="SCRIPT")
-        grid = box.grid_flow(columns=3, even_columns=True)
-        for mod in {**deps.REQUIRED, **deps.ENGINES, **deps.OPTIONAL}:
-            found = st.found.get(mod, False)
-            grid.label(text=mod, icon="CHECKMARK" if found else "X")
-        if st.message():
-            col = box.column()
-            col.alert = not st.ready
-            wrapped(col, st.message(), icon="ERROR" if not st.ready else "INFO")
-        box.operator(NKF_OT_check_dependencies.bl_idname, icon="FILE_REFRESH")
+        draw_preferences(self, self.layout, context)
 
-        box = layout.box()
-        box.label(text="Install Dependencies", icon="IMPORT")
-        wrapped(box, f"pip installs {installer.TORCH_SPEC}, SciPy, scikit-image, numba and safetensors into "
-                     f"{user_site()} (several hundred MB for the CPU build, several GB for CUDA).")
-        box.prop(self, "install_variant")
-        box.prop(self, "wheel_dir")
-        job = InstallState.job
-        if job is not None:
-            box.label(text=f"Installing… {job.elapsed:.0f} s", icon="SORTTIME")
-            wrapped(box, job.step)
-            box.operator(NKF_OT_cancel_install.bl_idname, icon="CANCEL")
-        else:
-            row = box.row()
-            if not bpy.app.online_access and not self.wheel_dir:
-                wrapped(box, "Online access is off: turn on Preferences > System > Network > Allow Online "
-                             "Access to download, or set an offline wheels folder.", icon="INFO")
-                row.enabled = False
-            op = row.operator(NKF_OT_install_dependencies.bl_idname, icon="IMPORT")
-            op.variant = self.install_variant
-        if InstallState.message:
-            col = box.column()
-            col.alert = not InstallState.ok
-            wrapped(col, InstallState.message, icon="CHECKMARK" if InstallState.ok else "ERROR")
 
-        box = layout.box()
-        box.label(text="Already have PyTorch?", icon="FILE_FOLDER")
-        box.prop(self, "torch_path")
+def draw_preferences(prefs, layout, context) -> None:
+    """What the preferences show (``prefs``: this add-on's preferences)."""
+    st = deps.status()
+    box = layout.box()
+    box.label(text="Python packages", icon="SCRIPT")
+    grid = box.grid_flow(columns=3, even_columns=True)
+    for mod in {**deps.REQUIRED, **deps.ENGINES, **deps.OPTIONAL}:
+        found = st.found.get(mod, False)
+        grid.label(text=mod, icon="CHECKMARK" if found else "X")
+    if st.message():
+        col = box.column()
+        col.alert = not st.ready
+        wrapped(col, st.message(), icon="ERROR" if not st.ready else "INFO")
+    box.operator(NKF_OT_check_dependencies.bl_idname, icon="FILE_REFRESH")
+
+    box = layout.box()
+    box.label(text="Install Dependencies", icon="IMPORT")
+    wrapped(box, f"pip installs {installer.TORCH_SPEC}, SciPy, scikit-image, numba and safetensors into "
+                 f"{user_site()} (several hundred MB for the CPU build, several GB for CUDA).")
+    box.prop(prefs, "install_variant")
+    box.prop(prefs, "wheel_dir")
+    job = InstallState.job
+    if job is not None:
+        box.label(text=f"Installing… {job.elapsed:.0f} s", icon="SORTTIME")
+        wrapped(box, job.step)
+        box.operator(NKF_OT_cancel_install.bl_idname, icon="CANCEL")
+    else:
+        row = box.row()
+        if not bpy.app.online_access and not prefs.wheel_dir:
+            wrapped(box, "Online access is off: turn on Preferences > System > Network > Allow Online "
+                         "Access to download, or set an offline wheels folder.", icon="INFO")
+            row.enabled = False
+        op = row.operator(NKF_OT_install_dependencies.bl_idname, icon="IMPORT")
+        op.variant = prefs.install_variant
+    if InstallState.message:
+        col = box.column()
+        col.alert = not InstallState.ok
+        wrapped(col, InstallState.message, icon="CHECKMARK" if InstallState.ok else "ERROR")
+
+    box = layout.box()
+    box.label(text="Already have PyTorch?", icon="FILE_FOLDER")
+    box.prop(prefs, "torch_path")
 
 
 CLASSES = (NKF_OT_install_dependencies, NKF_OT_cancel_install, NKF_OT_check_dependencies, NKFPreferences)

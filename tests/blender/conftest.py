@@ -18,21 +18,23 @@ from pathlib import Path
 import pytest
 from blender_helpers import PKG, ROOT, ext, nkf_threads
 
+# Before any test module (or helper) of this folder imports bpy: Blender's user folders go to a
+# temporary directory instead of ~/.config/blender.
+_USER_DIR = None
+if "bpy" not in sys.modules:
+    _USER_DIR = tempfile.mkdtemp(prefix="nkf-blender-user-")
+    os.environ["BLENDER_USER_RESOURCES"] = _USER_DIR
+
 
 @pytest.fixture(scope="session")
 def bpy_module():
-    """``bpy``, imported once, with its user folders in a temporary directory."""
-    user_dir = None
-    if "bpy" in sys.modules:  # imported elsewhere first: it must not be writing into ~/.config
-        assert os.environ.get("BLENDER_USER_RESOURCES"), "bpy was imported without BLENDER_USER_RESOURCES"
-    else:
-        user_dir = tempfile.mkdtemp(prefix="nkf-blender-user-")
-        os.environ["BLENDER_USER_RESOURCES"] = user_dir
+    """``bpy``, imported once per process, with its user folders in a temporary directory."""
+    assert os.environ.get("BLENDER_USER_RESOURCES"), "bpy was imported without BLENDER_USER_RESOURCES"
     import bpy
 
     yield bpy
-    if user_dir:
-        shutil.rmtree(user_dir, ignore_errors=True)
+    if _USER_DIR:
+        shutil.rmtree(_USER_DIR, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")
