@@ -205,7 +205,7 @@ def format_main(rows) -> str:
 
 def tradeoff(entries, cache, centres_list, n=10000, res=256, log=print) -> str:
     lines = [
-        f"| Nystrom centres | solver | mean IoU | mean Chamfer-L1 | mean time (s) | mean solve (s) |",
+        "| Nystrom centres | solver | mean IoU | mean Chamfer-L1 | mean time (s) | mean solve (s) |",
         "|---:|---|---:|---:|---:|---:|",
     ]
     for c in centres_list:
@@ -234,7 +234,8 @@ def growth(entry, n=1000, resolutions=(64, 128, 256, 512), log=print) -> str:
     v0, f0 = corpus.load(entry)
     pts, nrm = corpus.sample_input(v0, f0, n, 0.0, corpus.stable_seed("input", entry.name, n, 0.0))
     lines = [
-        f"| resolution | grid points evaluated | dense grid (R+1)^3 | kernel evaluations | ratio to previous | time (s) |",
+        "| resolution | grid points evaluated | dense grid (R+1)^3 | kernel evaluations | ratio to previous "
+        "| time (s) |",
         "|---:|---:|---:|---:|---:|---:|",
     ]
     prev = None

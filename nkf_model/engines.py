@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 import threading
-from typing import Callable, Optional
+from collections.abc import Callable
+from typing import Optional
 
 import numpy as np
 
@@ -162,7 +163,7 @@ def cuda_available() -> bool:
     return bool(torch.cuda.is_available())
 
 
-_CPU_ENGINE: Optional[Engine] = None
+_CPU_ENGINE: Engine | None = None
 
 
 def cpu_engine() -> Engine:

@@ -7,7 +7,7 @@ panels of :data:`BLOCK` columns and call ``check()`` after each panel.
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg import lapack, solve_triangular
@@ -23,7 +23,7 @@ class NotPositiveDefinite(np.linalg.LinAlgError):
     """The matrix handed to :func:`cholesky` is not numerically positive definite."""
 
 
-def cholesky(a: np.ndarray, check: Optional[Callable[[], None]] = None, block: int = BLOCK) -> np.ndarray:
+def cholesky(a: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK) -> np.ndarray:
     """Lower Cholesky factor ``L`` with ``a = L L^T``, computed in place of a copy of ``a``.
 
     Only the lower triangle of ``a`` (n, n) float64 is read. Raises :class:`NotPositiveDefinite`.
@@ -60,7 +60,7 @@ def cholesky(a: np.ndarray, check: Optional[Callable[[], None]] = None, block: i
     return L
 
 
-def gram_of_factor(L: np.ndarray, check: Optional[Callable[[], None]] = None, block: int = BLOCK) -> np.ndarray:
+def gram_of_factor(L: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK) -> np.ndarray:
     """``S = L^T L`` for lower-triangular ``L`` (n, n); only the lower triangle of ``S`` is filled."""
     n = L.shape[0]
     S = np.zeros_like(L)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 
@@ -70,9 +70,9 @@ def reconstruct(
     lam: float = DEFAULT_LAM,
     resolution: int = DEFAULT_RESOLUTION,
     device: str = "auto",
-    progress: Optional[Callable[[float, str], None]] = None,
+    progress: Callable[[float, str], None] | None = None,
     cancel=None,
-    eps: Optional[float] = None,
+    eps: float | None = None,
     max_centres: int = DEFAULT_CENTRES,
     seed: int = 0,
 ) -> Mesh:

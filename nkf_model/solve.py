@@ -15,8 +15,9 @@ constraints ``(a_i, y_i)`` and regularisation ``lam`` (per constraint), it minim
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -74,7 +75,7 @@ class KernelFunction:
     centres: np.ndarray
     alpha: np.ndarray
     engine: Engine
-    features: Optional[Callable[[np.ndarray], np.ndarray]] = None
+    features: Callable[[np.ndarray], np.ndarray] | None = None
 
     def __post_init__(self):
         self._cu, self._cr = split_unit(self.centres)
