@@ -24,14 +24,14 @@ def test_disable_and_enable_twice_even_with_a_job_running(scene, bpy_module, tmp
     import addon_utils
 
     bpy = bpy_module
-    pts, nrm = fibonacci_sphere(1500, 1.0)
+    pts, nrm = fibonacci_sphere(800, 1.0)
     src = import_ply(bpy, write_ply(tmp_path / "ball.ply", pts, nrm))
     site = ext("prefs").user_site(create=True)
     assert site in sys.path
     for round_ in range(2):
         runner = ext("runner")
         job = ext("job")
-        runner.start(bpy.context, src, job.Settings(method="splines", resolution=256, device="cpu"))
+        runner.start(bpy.context, src, job.Settings(method="splines", resolution=128, device="cpu"))
         assert nkf_threads()
         settings_classes = (ext("settings").NKF_PG_settings, ext("prefs").NKFPreferences)
 
