@@ -100,7 +100,6 @@ def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[Reconst
         st = deps.refresh()
     if not st.ready:
         raise UserError(st.message())
-    source.sync_edit_mode(obj)
     pts, nrm, _where = source.read_points(obj)
     job = ReconstructJob(pts, nrm, settings, on_progress=on_progress)
     act = Active(

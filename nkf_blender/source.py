@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import bpy
 import numpy as np
 
 from .errors import UserError
@@ -94,11 +95,23 @@ def read_points(obj) -> tuple[np.ndarray, np.ndarray, str]:
     """Positions (N, 3) float32 and normals (N, 3) float32 in ``obj``'s local coordinates.
 
     Returns ``(points, normals, normal_source)``. Raises :class:`SourceError` with a message for
-    the user when ``obj`` cannot be used. ``obj`` is never modified (a mesh in Edit Mode is read
-    as last synced; :func:`sync_edit_mode` syncs it first).
+    the user when ``obj`` cannot be used. ``obj`` is never modified. A mesh in Edit Mode is read with
+    its current edits: they are synced to the mesh (as Blender's own tools do) and read from a
+    temporary copy, since attributes cannot be read while the mesh is being edited.
     """
-    data = _data(obj)
-    count = _count(obj)
+    _data(obj)
+    if obj.type == "MESH" and obj.mode == "EDIT":
+        obj.update_from_editmode()
+        tmp = obj.data.copy()
+        try:
+            return _read(obj, tmp)
+        finally:
+            bpy.data.meshes.remove(tmp)
+    return _read(obj, obj.data)
+
+
+def _read(obj, data):
+    count = len(data.vertices) if obj.type == "MESH" else len(data.points)
     if count == 0:
         raise SourceError(f"'{obj.name}' has no points")
     pts = np.empty(count * 3, dtype=np.float32)
@@ -108,15 +121,9 @@ def read_points(obj) -> tuple[np.ndarray, np.ndarray, str]:
     if attr is not None:
         attr.data.foreach_get("vector", nrm)
         where = f"'{attr.name}' attribute"
-    elif _has_faces(obj):
+    elif obj.type == "MESH" and len(data.polygons) > 0:
         data.vertex_normals.foreach_get("vector", nrm)
         where = "vertex normals"
     else:
         raise SourceError(_no_normals(obj))
     return pts.reshape(-1, 3), nrm.reshape(-1, 3), where
-
-
-def sync_edit_mode(obj) -> None:
-    """Write a mesh's Edit Mode changes to its data so they are read (what Blender's own tools do)."""
-    if obj is not None and obj.type == "MESH" and obj.mode == "EDIT":
-        obj.update_from_editmode()

@@ -57,7 +57,7 @@ def build_zip(out: Path) -> Path:
     return Path(run.stdout.strip().splitlines()[-1])
 
 
-VIEW = (1.0, -0.3, 0.42)  # from the object towards the camera: its right side, a little in front, above
+VIEW = (1.0, 0.25, 0.3)  # from the object towards the camera: its right side, a little behind, above
 
 
 def world_bounds(objects):

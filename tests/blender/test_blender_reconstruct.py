@@ -55,6 +55,15 @@ def test_operator_reconstructs_imported_ply_sphere(scene, bpy_module, sphere_ply
 
     d_src_to_mesh, _ = cKDTree(world_vertices(new)).query(pts_world)
     assert d_src_to_mesh.max() < 0.05 * RADIUS
+    # Chamfer-L1 by the metrics module's protocol: 100k surface samples each side, unit box units.
+    from nkf_model.metrics import chamfer_l1, sample_surface
+
+    faces = np.empty(len(me.polygons) * 3, dtype=np.int32)
+    me.attributes[".corner_vert"].data.foreach_get("value", faces)
+    on_mesh, _ = sample_surface(world_vertices(new), faces.reshape(-1, 3), 100_000, np.random.default_rng(0))
+    on_sphere, _ = fibonacci_sphere(100_000, RADIUS, CENTER)
+    chamfer = chamfer_l1(on_mesh / (2 * RADIUS), on_sphere / (2 * RADIUS))
+    assert chamfer < 0.004, chamfer  # 100k samples alone give about 0.0025
     # Watertight: every edge is shared by exactly two triangles.
     assert me.validate() is False  # nothing to fix
     edges = np.empty(len(me.edges) * 2, dtype=np.int32)
@@ -202,3 +211,22 @@ def test_large_coordinates_keep_precision(scene, bpy_module, tmp_path):
     # float32 spacing at 2e5 is 0.016, i.e. 0.5 % of the radius: the error stays at that level.
     assert err.max() < 0.04 and math.isfinite(err.mean())
     assert src.name == "far"
+
+
+def test_mesh_in_edit_mode_is_read_with_its_unsaved_edits(scene, bpy_module):
+    import bmesh
+
+    bpy = bpy_module
+    bpy.ops.mesh.primitive_ico_sphere_add(radius=1.0, subdivisions=3)
+    ob = bpy.context.active_object
+    bpy.ops.object.mode_set(mode="EDIT")
+    bm = bmesh.from_edit_mesh(ob.data)
+    for v in bm.verts:
+        v.co *= 2.0  # an edit not yet written to the mesh data
+    bmesh.update_edit_mesh(ob.data)
+    assert bpy.types.VIEW3D_PT_nkf.poll(bpy.context)
+    assert bpy.ops.object.nkf_reconstruct(method="SPLINES", resolution=32) == {"FINISHED"}
+    new = bpy.data.objects["Icosphere_nkf"]
+    assert _radial_error(world_vertices(new), (0, 0, 0), 2.0).max() < 0.04
+    assert ob.mode == "EDIT"
+    bpy.ops.object.mode_set(mode="OBJECT")
