@@ -21,7 +21,7 @@ import numpy as np
 GRID_HALF = 0.55
 MIN_RESOLUTION = 16
 MAX_RESOLUTION = 1024
-COARSEST = 24  # coarse levels stop halving below this many cells per side
+COARSEST = 16  # the coarsest level has 16 to 32 cells per side
 
 _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
 _NEIGHBOURS = np.array(
@@ -33,11 +33,20 @@ _CHILD_NODES = np.array(
 
 
 def levels(resolution: int) -> list[int]:
-    """Cells per side at each level, coarse to fine, ending at ``resolution``."""
-    out = [int(resolution)]
-    while out[0] % 2 == 0 and out[0] // 2 >= COARSEST:
-        out.insert(0, out[0] // 2)
-    return out
+    """Cells per side of the (padded) grid at each level, coarse to fine.
+
+    The finest level has ``resolution`` cells per side, rounded up to a multiple of ``2**(L-1)`` so
+    that every level halves the one after it; the cell size stays ``2 * GRID_HALF / resolution`` and
+    the extra cells (fewer than ``2**(L-1)``) lie past the grid's far side, where nothing is meshed.
+    The coarsest level has between ``COARSEST`` and ``2 * COARSEST`` cells per side.
+    """
+    r = int(resolution)
+    k = 0
+    while (r >> (k + 1)) >= COARSEST:
+        k += 1
+    step = 1 << k
+    top = -(-r // step) * step
+    return [top >> (k - i) for i in range(k + 1)]
 
 
 def node_keys(ijk: np.ndarray, r: int) -> np.ndarray:
@@ -56,9 +65,10 @@ def cells_from_keys(keys: np.ndarray, r: int) -> np.ndarray:
     return np.stack([keys // (r * r), (keys // r) % r, keys % r], axis=1)
 
 
-def node_positions(ijk: np.ndarray, r: int) -> np.ndarray:
-    """Unit-box positions (N, 3) float64 of nodes on the ``r``-cell grid."""
-    return -GRID_HALF + ijk * (2.0 * GRID_HALF / r)
+def node_positions(ijk: np.ndarray, r: int, cell: float | None = None) -> np.ndarray:
+    """Unit-box positions (N, 3) float64 of nodes on the ``r``-cell grid (cell size ``cell``,
+    default ``2 * GRID_HALF / r``)."""
+    return -GRID_HALF + ijk * (2.0 * GRID_HALF / r if cell is None else cell)
 
 
 @dataclass
@@ -68,17 +78,21 @@ class SparseField:
     Attributes
     ----------
     resolution : int
-        Cells per side of the finest grid.
+        Cells per side of the finest grid over the box ``[-GRID_HALF, GRID_HALF]^3``.
     keys : (K,) int64, sorted
-        :func:`node_keys` of the nodes with known values.
+        :func:`node_keys` of the nodes with known values, on the padded grid of ``grid_cells``
+        cells per side (see :func:`levels`).
     values : (K,) float64
         Function values at those nodes.
     band : (B, 3) int64
-        Finest-grid cells whose eight corners are known and change sign.
+        Finest-grid cells (each index below ``resolution``) whose eight corners are known and change
+        sign.
     evaluations : int
         Number of points at which the function was evaluated, over all levels.
     level_evaluations : list of (int, int)
         (cells per side, points evaluated) for each level.
+    grid_cells : int
+        Cells per side of the padded finest grid (>= ``resolution``).
     """
 
     resolution: int
@@ -87,10 +101,15 @@ class SparseField:
     band: np.ndarray
     evaluations: int
     level_evaluations: list
+    grid_cells: int = 0
+
+    def __post_init__(self):
+        if not self.grid_cells:
+            self.grid_cells = self.resolution
 
     def lookup(self, ijk: np.ndarray) -> np.ndarray:
         """Values at nodes (N, 3); NaN where unknown."""
-        return _lookup(self.keys, self.values, node_keys(ijk, self.resolution))
+        return _lookup(self.keys, self.values, node_keys(ijk, self.grid_cells))
 
 
 def _lookup(keys, values, query):
@@ -173,6 +192,7 @@ def evaluate_sparse(
     chunk: int = 65536,
     check: Callable[[], None] | None = None,
     step: Callable[[float], None] | None = None,
+    seeds: np.ndarray | None = None,
 ) -> SparseField:
     """Evaluate ``f`` coarse to fine around its zero level set.
 
@@ -188,19 +208,33 @@ def evaluate_sparse(
         Raises to cancel; called between chunks.
     step : callable
         ``step(fraction)`` progress within this stage.
+    seeds : (S, 3) float, optional
+        Unit-box points known to lie on the surface (the input points). The cells holding them are
+        refined at every level, so no part of the surface near the data can be missed by the coarse
+        grid.
 
     Returns
     -------
     SparseField
     """
     lv = levels(resolution)
+    finest_cell = 2.0 * GRID_HALF / resolution
+    top = lv[-1]
+
+    def seed_cells(r):
+        if seeds is None or len(seeds) == 0:
+            return np.zeros((0, 3), dtype=np.int64)
+        h = finest_cell * top / r
+        c = np.floor((np.asarray(seeds, dtype=np.float64) + GRID_HALF) / h).astype(np.int64)
+        c = np.clip(c, 0, r - 1)
+        return cells_from_keys(np.unique(cell_keys(c, r)), r)
     total_done = 0
     per_level = []
 
     def run(ijk, r, expected_rest):
         nonlocal total_done
         out = np.empty(len(ijk))
-        pts = node_positions(ijk, r)
+        pts = node_positions(ijk, r, finest_cell * top / r)
         for s in range(0, len(ijk), chunk):
             if check is not None:
                 check()
@@ -223,6 +257,9 @@ def evaluate_sparse(
     for li in range(1, len(lv)):
         r_prev, r = lv[li - 1], lv[li]
         remaining_levels = len(lv) - 1 - li
+        extra = seed_cells(r_prev)
+        if len(extra):
+            crossing = cells_from_keys(np.union1d(cell_keys(crossing, r_prev), cell_keys(extra, r_prev)), r_prev)
         lvl_keys = np.zeros(0, dtype=np.int64)
         lvl_vals = np.zeros(0)
         done_parents = np.zeros(0, dtype=np.int64)
@@ -260,7 +297,7 @@ def evaluate_sparse(
         keys, values = lvl_keys, lvl_vals
         # A fine cell is the child of only one parent, and each parent is visited once: no repeats.
         crossing = np.concatenate(fine) if fine else np.zeros((0, 3), dtype=np.int64)
-    band = crossing
+    band = crossing[(crossing < resolution).all(axis=1)]
 
     if step is not None:
         step(1.0)
@@ -271,6 +308,7 @@ def evaluate_sparse(
         band=band,
         evaluations=total_done,
         level_evaluations=per_level,
+        grid_cells=top,
     )
 
 

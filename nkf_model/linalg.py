@@ -13,10 +13,11 @@ import numpy as np
 from scipy.linalg import lapack, solve_triangular
 
 BLOCK = 1024
-# Below this size one LAPACK call takes under about 0.15 s and is not worth splitting.
-SINGLE_CALL = 3000
-# Floating-point operations between two calls of ``check`` (about 0.1-0.2 s on the reference CPU).
-FLOPS_PER_CHECK = 5e9
+# Below this size one LAPACK call takes under about 0.1 s and is not worth splitting.
+SINGLE_CALL = 2500
+# Floating-point operations between two calls of ``check`` (about 0.05 s on one core of the reference
+# CPU, so that a cancel request is seen within 0.5 s even on a busy machine).
+FLOPS_PER_CHECK = 1.5e9
 
 
 class NotPositiveDefinite(np.linalg.LinAlgError):
