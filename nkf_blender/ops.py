@@ -28,7 +28,7 @@ def _tag_redraw(context) -> None:
 
 
 def _report_finished(op, ob, key) -> None:
-    rec = runner._last.get(key)
+    rec = runner.record(key)
     if rec is not None and rec.message:
         op.report({"WARNING"}, f"NKF: {rec.message}")
     op.report({"INFO"}, runner.summary(ob, key))
@@ -131,7 +131,7 @@ class OBJECT_OT_nkf_cancel(bpy.types.Operator):
 
     def execute(self, context):
         act = runner.active_job(context.active_object)
-        keys = [act.source_uid] if act is not None else list(runner._active)
+        keys = [act.source_uid] if act is not None else runner.running_keys()
         for key in keys:
             runner.cancel(key)
         self.report({"INFO"}, f"NKF: cancelling {len(keys)} reconstruction{'s' if len(keys) != 1 else ''}")

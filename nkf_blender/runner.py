@@ -85,6 +85,16 @@ def running_count() -> int:
     return len(_active)
 
 
+def running_keys() -> list[int]:
+    """Keys of every job in flight."""
+    return list(_active)
+
+
+def record(key: int) -> LastRun | None:
+    """The outcome of the last finished job for this key (source or result object)."""
+    return _last.get(key)
+
+
 def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[ReconstructJob, Active]:
     """Check everything that can be checked now and read the points; the job is not started.
 
@@ -222,7 +232,7 @@ def stop_all(timeout: float = 10.0) -> list[str]:
 
 def summary(ob, key: int) -> str:
     """One line for the status bar after a run."""
-    rec = _last.get(key)
+    rec = record(key)
     if rec is None or ob is None:
         return ""
     return (
