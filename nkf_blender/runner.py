@@ -54,13 +54,15 @@ _last: dict[int, LastRun] = {}
 
 
 def key_of(obj) -> int:
-    return obj.session_uid
+    """The object's ``session_uid``, or its address where the API lacks it (older Blender)."""
+    uid = getattr(obj, "session_uid", None)
+    return uid if uid is not None else obj.as_pointer()
 
 
 def find_object(uid: int):
     """The object with this ``session_uid``, or None if it was deleted."""
     for ob in bpy.data.objects:
-        if ob.session_uid == uid:
+        if key_of(ob) == uid:
             return ob
     return None
 
@@ -101,7 +103,7 @@ def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[Reconst
     Raises :class:`~nkf_blender.errors.UserError` (nothing changed) when the object or the
     installation cannot run.
     """
-    if obj is not None and obj.session_uid in _active:
+    if obj is not None and key_of(obj) in _active:
         raise UserError(
             f"A reconstruction of '{obj.name}' is already running: wait for it to finish or press Cancel"
         )
@@ -114,7 +116,7 @@ def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[Reconst
     job = ReconstructJob(pts, nrm, settings, on_progress=on_progress)
     act = Active(
         job=job,
-        source_uid=obj.session_uid,
+        source_uid=key_of(obj),
         source_name=obj.name,
         matrix_world=obj.matrix_world.copy(),
         collections=[c.name for c in obj.users_collection],
@@ -198,7 +200,7 @@ def finish(context, key: int):
     record.triangles = len(job.result.faces)
     record.result_name = ob.name
     record.message = "; ".join(job.notes)
-    _last[ob.session_uid] = record  # the panel shows it for the new (active) object too
+    _last[key_of(ob)] = record  # the panel shows it for the new (active) object too
     return ob
 
 
