@@ -100,7 +100,8 @@ def frame_camera(bpy, scene, target, lens: float = 85.0):
 
 def material(bpy, name, color, roughness=0.45):
     mat = bpy.data.materials.new(name)
-    mat.use_nodes = True
+    if mat.node_tree is None:  # Blender < 5.0 creates materials without nodes
+        mat.use_nodes = True
     bsdf = mat.node_tree.nodes.get("Principled BSDF")
     bsdf.inputs["Base Color"].default_value = (*color, 1.0)
     bsdf.inputs["Roughness"].default_value = roughness
@@ -175,7 +176,8 @@ def stage_scene(bpy, scene, source, result, samples: int, size: tuple[int, int])
     sun.rotation_euler = (math.radians(40), math.radians(15), math.radians(30))
     scene.collection.objects.link(sun)
     world = bpy.data.worlds.new("World")
-    world.use_nodes = True
+    if world.node_tree is None:
+        world.use_nodes = True
     bg = world.node_tree.nodes.get("Background")
     bg.inputs["Color"].default_value = (0.75, 0.80, 0.88, 1.0)
     bg.inputs["Strength"].default_value = 0.8
