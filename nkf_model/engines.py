@@ -93,13 +93,14 @@ class NumbaEngine(Engine):
         ct = np.ascontiguousarray(cu.T)
         acute = self._acute(qu, cu)
         g = np.empty((len(qu), len(cu)))
-        for s, e in _chunks(len(qu), len(cu)):
+        # Writing the matrix is slower per entry than summing: smaller chunks.
+        for s, e in _chunks(len(qu), len(cu), per_chunk=CHUNK_EVALS // 10):
             if check is not None:
                 check()
             with self._lock:
                 g[s:e] = self._nk.gmatrix(np.ascontiguousarray(qu[s:e]), ct, acute)
-        g *= qr[:, None] / math.pi
-        g *= cr[None, :]
+            g[s:e] *= qr[s:e, None] / math.pi
+            g[s:e] *= cr[None, :]
         return g
 
     def normal_product(self, xu, xr, cu, cr, u, v, check: Check = None):

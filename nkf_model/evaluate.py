@@ -272,6 +272,8 @@ def evaluate_sparse(
             done_parents = np.union1d(done_parents, cell_keys(frontier, r_prev))
             child_nodes = (2 * frontier[:, None, :] + _CHILD_NODES[None]).reshape(-1, 3)
             ck, inverse = np.unique(node_keys(child_nodes, r), return_inverse=True)
+            if check is not None:
+                check()
             vals = _lookup(lvl_keys, lvl_vals, ck) if len(lvl_keys) else np.full(len(ck), np.nan)
             new = np.isnan(vals)
             nk = ck[new]
@@ -288,6 +290,8 @@ def evaluate_sparse(
             order = np.argsort(np.concatenate([lvl_keys, nk]), kind="stable")
             lvl_keys = np.concatenate([lvl_keys, nk])[order]
             lvl_vals = np.concatenate([lvl_vals, nv])[order]
+            if check is not None:
+                check()
             local = vals[inverse].reshape(len(frontier), 3, 3, 3)
             which = np.argwhere(_crossing_children(local))  # (parent, a, b, c)
             cells = 2 * frontier[which[:, 0]] + which[:, 1:]

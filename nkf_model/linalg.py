@@ -24,8 +24,11 @@ class NotPositiveDefinite(np.linalg.LinAlgError):
     """The matrix handed to :func:`cholesky` is not numerically positive definite."""
 
 
-def cholesky(a: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK) -> np.ndarray:
-    """Lower Cholesky factor ``L`` with ``a = L L^T``, computed in place of a copy of ``a``.
+def cholesky(
+    a: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK, overwrite: bool = False
+) -> np.ndarray:
+    """Lower Cholesky factor ``L`` with ``a = L L^T``, computed in place of a copy of ``a`` (or of
+    ``a`` itself with ``overwrite``, when it is a C-contiguous float64 array).
 
     Only the lower triangle of ``a`` (n, n) float64 is read. Raises :class:`NotPositiveDefinite`.
     """
@@ -37,7 +40,10 @@ def cholesky(a: np.ndarray, check: Callable[[], None] | None = None, block: int 
         if check is not None:
             check()
         return L
-    L = np.array(a, dtype=np.float64, order="C", copy=True)
+    own = overwrite and a.dtype == np.float64 and a.flags.c_contiguous
+    L = a if own else np.array(a, dtype=np.float64, order="C", copy=True)
+    if check is not None:
+        check()
     for k in range(0, n, block):
         e = min(n, k + block)
         if k > 0:
@@ -54,7 +60,12 @@ def cholesky(a: np.ndarray, check: Callable[[], None] | None = None, block: int 
             raise NotPositiveDefinite(f"leading minor {k + info} is not positive definite")
         L[k:e, k:e] = d
         if e < n:
-            L[e:, k:e] = solve_triangular(d, L[e:, k:e].T, lower=True, check_finite=False).T
+            # L[e:, k:e] = L[e:, k:e] d^-T, in row chunks.
+            rows = max(256, int(FLOPS_PER_CHECK / float((e - k) ** 2)))
+            for r in range(e, n, rows):
+                L[r : r + rows, k:e] = solve_triangular(d, L[r : r + rows, k:e].T, lower=True, check_finite=False).T
+                if check is not None:
+                    check()
             L[k:e, e:] = 0.0
         if check is not None:
             check()
@@ -69,7 +80,9 @@ def gram_of_factor(L: np.ndarray, check: Callable[[], None] | None = None, block
         e = min(n, i + block)
         # S[i:e, :e] = L[i:, i:e]^T L[i:, :e]  (L[k, i:e] = 0 for k < i)
         left = np.ascontiguousarray(L[i:, i:e].T)
-        cols = max(256, int(FLOPS_PER_CHECK / (2.0 * (e - i) * (n - i))))
+        if check is not None:
+            check()
+        cols = max(64, int(FLOPS_PER_CHECK / (2.0 * (e - i) * (n - i))))
         for c in range(0, e, cols):
             S[i:e, c : min(e, c + cols)] = left @ L[i:, c : min(e, c + cols)]
             if check is not None:

@@ -169,24 +169,28 @@ def solve_falkon(
     kmm = engine.kernel_matrix(cu, cr, cu, cr, check=check)
     if check is not None:
         check()
-    # T = chol(K_MM + jitter I) (here lower: K_MM = L L^T and Falkon's T = L^T).
-    jitter = 1e-14 * float(np.trace(kmm)) / m
+    # T = chol(K_MM + jitter I) (here lower: K_MM = L L^T and Falkon's T = L^T). The factorisation
+    # overwrites K_MM; in the rare case that the jitter is too small, K_MM is computed again.
+    base = 1e-14 * float(np.trace(kmm)) / m
+    jitter = base
     while True:
+        kmm[np.diag_indices(m)] += jitter
         try:
-            kj = kmm.copy()
-            kj[np.diag_indices(m)] += jitter
-            L = linalg.cholesky(kj, check=check)
+            L = linalg.cholesky(kmm, check=check, overwrite=True)
             break
         except linalg.NotPositiveDefinite:
             jitter *= 10.0
-    del kj, kmm
+            kmm = engine.kernel_matrix(cu, cr, cu, cr, check=check)
+    del kmm
     if step is not None:
         step(0.2)
     # A = chol(T T^T / M + lam I) = chol(L^T L / M + lam I).
     S = linalg.gram_of_factor(L, check=check)
     S /= m
     S[np.diag_indices(m)] += max(lam, 1e-15)
-    La = linalg.cholesky(S, check=check)
+    if check is not None:
+        check()
+    La = linalg.cholesky(S, check=check, overwrite=True)
     del S
     if step is not None:
         step(0.4)
