@@ -72,19 +72,22 @@ def cholesky(
     return L
 
 
-def gram_of_factor(L: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK) -> np.ndarray:
-    """``S = L^T L`` for lower-triangular ``L`` (n, n); only the lower triangle of ``S`` is filled."""
+def gram_of_factor(
+    L: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK, scale: float = 1.0
+) -> np.ndarray:
+    """``S = scale * L^T L`` for lower-triangular ``L`` (n, n); only the lower triangle of ``S`` is
+    filled."""
     n = L.shape[0]
-    S = np.zeros_like(L)
+    S = np.zeros((n, n))  # calloc: pages are zeroed lazily
     for i in range(0, n, block):
         e = min(n, i + block)
         # S[i:e, :e] = L[i:, i:e]^T L[i:, :e]  (L[k, i:e] = 0 for k < i)
-        left = np.ascontiguousarray(L[i:, i:e].T)
-        if check is not None:
-            check()
+        left = L[i:, i:e].T  # a strided view: BLAS reads it in place
         cols = max(64, int(FLOPS_PER_CHECK / (2.0 * (e - i) * (n - i))))
         for c in range(0, e, cols):
             S[i:e, c : min(e, c + cols)] = left @ L[i:, c : min(e, c + cols)]
+            if scale != 1.0:
+                S[i:e, c : min(e, c + cols)] *= scale
             if check is not None:
                 check()
     return S

@@ -185,8 +185,7 @@ def solve_falkon(
     if step is not None:
         step(0.2)
     # A = chol(T T^T / M + lam I) = chol(L^T L / M + lam I).
-    S = linalg.gram_of_factor(L, check=check)
-    S /= m
+    S = linalg.gram_of_factor(L, check=check, scale=1.0 / m)
     S[np.diag_indices(m)] += max(lam, 1e-15)
     if check is not None:
         check()
