@@ -14,7 +14,7 @@ import math
 import numba as nb
 import numpy as np
 
-from ._numba_kernels import _g
+from ._numba_kernels import _g, _g_acute
 
 _OPTS = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
 
@@ -64,7 +64,7 @@ def _trilinear(grid, lo, step, x0, x1, x2):
 
 
 @nb.njit(parallel=True, **_OPTS)
-def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step):  # pragma: no cover - compiled
+def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step, acute):  # pragma: no cover
     """Blended value ``sum_p w_p(x) g_p(x)`` at each query.
 
     Parameters
@@ -85,6 +85,9 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step):
     f0 : (G, G, G) float64
         The coarse global fit sampled on a regular grid from ``f0_lo`` with spacing ``f0_step``;
         interpolated trilinearly where a corner patch has no fit.
+    acute : bool
+        Every query and centre is a 4-D ``[x : 1]`` with ``|x| < 1`` (so the faster branch-free
+        angle term of :func:`nkf_model._numba_kernels._g_acute` applies).
     """
     nq = x.shape[0]
     d = qu.shape[1]
@@ -125,12 +128,20 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step):
                         c1 = cu[1]
                         c2 = cu[2]
                         c3 = cu[3]
-                        for j in range(s0, s0 + m):
-                            t0 = u0 - c0[j]
-                            t1 = u1 - c1[j]
-                            t2 = u2 - c2[j]
-                            t3 = u3 - c3[j]
-                            acc += beta[j] * _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+                        if acute:
+                            for j in range(s0, s0 + m):
+                                t0 = u0 - c0[j]
+                                t1 = u1 - c1[j]
+                                t2 = u2 - c2[j]
+                                t3 = u3 - c3[j]
+                                acc += beta[j] * _g_acute(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+                        else:
+                            for j in range(s0, s0 + m):
+                                t0 = u0 - c0[j]
+                                t1 = u1 - c1[j]
+                                t2 = u2 - c2[j]
+                                t3 = u3 - c3[j]
+                                acc += beta[j] * _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
                     else:
                         for j in range(s0, s0 + m):
                             s = 0.0

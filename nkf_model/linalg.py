@@ -13,18 +13,22 @@ import numpy as np
 from scipy.linalg import lapack, solve_triangular
 
 BLOCK = 1024
-# Below this size one LAPACK call takes under about 0.15 s and is not worth splitting.
-SINGLE_CALL = 3000
-# Floating-point operations between two calls of ``check`` (about 0.1-0.2 s on the reference CPU).
-FLOPS_PER_CHECK = 5e9
+# Below this size one LAPACK call takes under about 0.1 s and is not worth splitting.
+SINGLE_CALL = 2500
+# Floating-point operations between two calls of ``check`` (about 0.05 s on one core of the reference
+# CPU, so that a cancel request is seen within 0.5 s even on a busy machine).
+FLOPS_PER_CHECK = 1.5e9
 
 
 class NotPositiveDefinite(np.linalg.LinAlgError):
     """The matrix handed to :func:`cholesky` is not numerically positive definite."""
 
 
-def cholesky(a: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK) -> np.ndarray:
-    """Lower Cholesky factor ``L`` with ``a = L L^T``, computed in place of a copy of ``a``.
+def cholesky(
+    a: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK, overwrite: bool = False
+) -> np.ndarray:
+    """Lower Cholesky factor ``L`` with ``a = L L^T``, computed in place of a copy of ``a`` (or of
+    ``a`` itself with ``overwrite``, when it is a C-contiguous float64 array).
 
     Only the lower triangle of ``a`` (n, n) float64 is read. Raises :class:`NotPositiveDefinite`.
     """
@@ -36,7 +40,10 @@ def cholesky(a: np.ndarray, check: Callable[[], None] | None = None, block: int 
         if check is not None:
             check()
         return L
-    L = np.array(a, dtype=np.float64, order="C", copy=True)
+    own = overwrite and a.dtype == np.float64 and a.flags.c_contiguous
+    L = a if own else np.array(a, dtype=np.float64, order="C", copy=True)
+    if check is not None:
+        check()
     for k in range(0, n, block):
         e = min(n, k + block)
         if k > 0:
@@ -53,24 +60,34 @@ def cholesky(a: np.ndarray, check: Callable[[], None] | None = None, block: int 
             raise NotPositiveDefinite(f"leading minor {k + info} is not positive definite")
         L[k:e, k:e] = d
         if e < n:
-            L[e:, k:e] = solve_triangular(d, L[e:, k:e].T, lower=True, check_finite=False).T
+            # L[e:, k:e] = L[e:, k:e] d^-T, in row chunks.
+            rows = max(256, int(FLOPS_PER_CHECK / float((e - k) ** 2)))
+            for r in range(e, n, rows):
+                L[r : r + rows, k:e] = solve_triangular(d, L[r : r + rows, k:e].T, lower=True, check_finite=False).T
+                if check is not None:
+                    check()
             L[k:e, e:] = 0.0
         if check is not None:
             check()
     return L
 
 
-def gram_of_factor(L: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK) -> np.ndarray:
-    """``S = L^T L`` for lower-triangular ``L`` (n, n); only the lower triangle of ``S`` is filled."""
+def gram_of_factor(
+    L: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK, scale: float = 1.0
+) -> np.ndarray:
+    """``S = scale * L^T L`` for lower-triangular ``L`` (n, n); only the lower triangle of ``S`` is
+    filled."""
     n = L.shape[0]
-    S = np.zeros_like(L)
+    S = np.zeros((n, n))  # calloc: pages are zeroed lazily
     for i in range(0, n, block):
         e = min(n, i + block)
         # S[i:e, :e] = L[i:, i:e]^T L[i:, :e]  (L[k, i:e] = 0 for k < i)
-        left = np.ascontiguousarray(L[i:, i:e].T)
-        cols = max(256, int(FLOPS_PER_CHECK / (2.0 * (e - i) * (n - i))))
+        left = L[i:, i:e].T  # a strided view: BLAS reads it in place
+        cols = max(64, int(FLOPS_PER_CHECK / (2.0 * (e - i) * (n - i))))
         for c in range(0, e, cols):
             S[i:e, c : min(e, c + cols)] = left @ L[i:, c : min(e, c + cols)]
+            if scale != 1.0:
+                S[i:e, c : min(e, c + cols)] *= scale
             if check is not None:
                 check()
     return S

@@ -31,6 +31,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from . import _pou_kernels as pk
+from ._numba_kernels import ACUTE_MIN_LAST
 from .engines import Engine, NumbaEngine
 from .evaluate import GRID_HALF
 from .kernel import homogeneous, split_unit
@@ -130,9 +131,11 @@ class PoUFunction:
         if check is not None:
             check()
         if isinstance(self.engine, NumbaEngine):
+            lim = ACUTE_MIN_LAST
+            acute = qu.shape[1] == 4 and bool(qu[:, 3].min() >= lim) and bool(self.cu[3].min() >= lim)
             with NumbaEngine._lock:
                 return pk.pou_sum(x, qu, qr, self.lo, self.h, self.dims, self.start, self.count, self.cu,
-                                  self.beta, self.f0_grid, self.f0_lo, self.f0_step)
+                                  self.beta, self.f0_grid, self.f0_lo, self.f0_step, acute)
         idx, w = pk.corner_weights(x, self.lo, self.h, self.dims)
         f0 = pk.interpolate(self.f0_grid, self.f0_lo, self.f0_step, x)
         return self._generic(qu, qr, idx, w, f0, check)

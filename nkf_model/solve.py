@@ -106,7 +106,7 @@ def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, check:
     """
     u, r = split_unit(a)
     n = len(a)
-    G = engine.kernel_matrix(u, r, u, r)
+    G = engine.kernel_matrix(u, r, u, r, check=check)
     if check is not None:
         check()
     G[np.diag_indices(n)] += n * lam
@@ -166,27 +166,30 @@ def solve_falkon(
     xu, xr = split_unit(a)
     cu, cr = xu[centre_index], xr[centre_index]
     m = len(centre_index)
-    kmm = engine.kernel_matrix(cu, cr, cu, cr)
+    kmm = engine.kernel_matrix(cu, cr, cu, cr, check=check)
     if check is not None:
         check()
-    # T = chol(K_MM + jitter I) (here lower: K_MM = L L^T and Falkon's T = L^T).
-    jitter = 1e-14 * float(np.trace(kmm)) / m
+    # T = chol(K_MM + jitter I) (here lower: K_MM = L L^T and Falkon's T = L^T). The factorisation
+    # overwrites K_MM; in the rare case that the jitter is too small, K_MM is computed again.
+    base = 1e-14 * float(np.trace(kmm)) / m
+    jitter = base
     while True:
+        kmm[np.diag_indices(m)] += jitter
         try:
-            kj = kmm.copy()
-            kj[np.diag_indices(m)] += jitter
-            L = linalg.cholesky(kj, check=check)
+            L = linalg.cholesky(kmm, check=check, overwrite=True)
             break
         except linalg.NotPositiveDefinite:
             jitter *= 10.0
-    del kj, kmm
+            kmm = engine.kernel_matrix(cu, cr, cu, cr, check=check)
+    del kmm
     if step is not None:
         step(0.2)
     # A = chol(T T^T / M + lam I) = chol(L^T L / M + lam I).
-    S = linalg.gram_of_factor(L, check=check)
-    S /= m
+    S = linalg.gram_of_factor(L, check=check, scale=1.0 / m)
     S[np.diag_indices(m)] += max(lam, 1e-15)
-    La = linalg.cholesky(S, check=check)
+    if check is not None:
+        check()
+    La = linalg.cholesky(S, check=check, overwrite=True)
     del S
     if step is not None:
         step(0.4)

@@ -122,3 +122,20 @@ def test_torch_kernel_gradient_is_finite_on_the_diagonal():
     assert torch.isfinite(a.grad).all()
     b = a.detach().clone() + 0.1
     assert torch.autograd.gradcheck(lambda x: ns_kernel_torch(x, b), (a,), atol=1e-6)
+
+
+@pytest.mark.parametrize("spread", [0.5, 0.99, 3.0])
+def test_fast_and_general_angle_terms_agree(spread):
+    """The 4-D engine picks a one-square-root angle term when all pairs are within 90 degrees
+    (|x| < 1) and the general one otherwise; both match the reference."""
+    rng = np.random.default_rng(6)
+    x = rng.normal(size=(300, 3))
+    x *= (spread * rng.uniform(0.0, 1.0, 300) / np.linalg.norm(x, axis=1))[:, None]
+    a = homogeneous(x)
+    u, r = split_unit(a)
+    eng = NumbaEngine()
+    assert eng._acute(u) == (spread < 1)
+    w = rng.normal(size=len(a))
+    K = ns_kernel(a, a)
+    np.testing.assert_allclose(eng.kernel_matrix(u, r, u, r), K, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(eng.kernel_sum(u, r, u, r, w), K @ w, rtol=1e-11, atol=1e-11)

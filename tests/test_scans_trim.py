@@ -40,8 +40,8 @@ def test_trim_removes_surface_far_from_samples(hemisphere):
 
 
 def test_min_piece_removes_small_disconnected_pieces():
-    big, nb = sphere_points(3000, seed=1)
-    small, ns = sphere_points(300, radius=0.08, center=(2.0, 0.0, 0.0), seed=2)
+    big, nb = sphere_points(1500, seed=1)
+    small, ns = sphere_points(200, radius=0.1, center=(2.0, 0.0, 0.0), seed=2)
     p, n = np.r_[big, small], np.r_[nb, ns]
     whole = nkf_model.reconstruct(p, n, resolution=64, device="cpu")
     assert piece_labels(len(whole.vertices), whole.faces.astype(np.int64))[0] == 2

@@ -71,9 +71,34 @@ def test_evaluations_grow_as_the_square_of_the_resolution():
 
 
 def test_levels():
-    assert levels(128) == [32, 64, 128]
+    assert levels(128) == [16, 32, 64, 128]
     assert levels(100) == [25, 50, 100]
-    assert levels(37) == [37]
+    assert levels(37) == [19, 38]
+    assert levels(1023) == [32, 64, 128, 256, 512, 1024]
+    assert levels(16) == [16]
+
+
+@pytest.mark.parametrize("res", [37, 99, 129])
+def test_odd_resolutions_stay_sparse_and_match_dense(res):
+    sp = evaluate_sparse(sphere_sdf, res)
+    assert sp.evaluations < 0.3 * (res + 1) ** 3
+    v, f = triangulate(sp)
+    assert len(f) > 0 and np.abs(np.linalg.norm(v, axis=1) - 0.3).max() < 1.1 / res
+    assert v.max() < 0.55 and v.min() > -0.55
+
+
+def test_seeds_find_a_part_the_coarse_grid_misses():
+    """A small ball between the coarse grid's nodes is found through a seed point on it."""
+    c = np.array([0.013, -0.021, 0.017])
+
+    def blobs(p):
+        return np.minimum(np.linalg.norm(p - 0.3, axis=1) - 0.1, np.linalg.norm(p - c, axis=1) - 0.012)
+
+    without = triangulate(evaluate_sparse(blobs, 128))[0]
+    seeded = triangulate(evaluate_sparse(blobs, 128, seeds=(c + [0.012, 0, 0])[None]))[0]
+    near = lambda v: (np.linalg.norm(v - c, axis=1) < 0.02).sum()  # noqa: E731
+    assert near(without) == 0
+    assert near(seeded) > 20
 
 
 def test_sparse_evaluation_cancels():
