@@ -255,3 +255,33 @@ def _sample(vertices, faces, n, rng):
     pts = (1 - r1)[:, None] * t[:, 0] + (r1 * (1 - r2))[:, None] * t[:, 1] + (r1 * r2)[:, None] * t[:, 2]
     nrm = cross[which] / np.maximum(2.0 * area[which], 1e-300)[:, None]
     return pts, nrm, which
+
+
+def main(argv=None) -> int:
+    """``python -m nkf_model.scenes OUT.ply``: write a synthetic room scan (x y z red green blue,
+    no normals, as a scanner gives it) and print the scanner positions as ``--viewpoint`` options."""
+    import argparse
+
+    from .fileio import write_point_cloud
+
+    ap = argparse.ArgumentParser(prog="python -m nkf_model.scenes", description=main.__doc__.split("\n")[0])
+    ap.add_argument("output", help="PLY file to write")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--points", type=int, default=100_000)
+    ap.add_argument("--objects", type=int, default=4)
+    ap.add_argument("--noise", type=float, default=0.003, help="range noise, metres (default 0.003)")
+    ap.add_argument("--with-normals", action="store_true", help="also write the true normals")
+    args = ap.parse_args(argv)
+    scene = make_scene(seed=args.seed, n_objects=args.objects)
+    s = scan(scene, args.points, noise=args.noise, seed=args.seed)
+    write_point_cloud(args.output, s.points, s.normals if args.with_normals else None, s.colors)
+    print(f"{args.output}: {len(s.points):,} points of a {ROOM[0]:g} x {ROOM[1]:g} m room with "
+          f"{', '.join(scene.objects)}")
+    print("scanner positions: " + " ".join(f"--viewpoint {x:.2f} {y:.2f} {z:.2f}" for x, y, z in scene.viewpoints))
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())
