@@ -7,19 +7,29 @@ Two steps, both on the CPU with SciPy:
    weights ``exp(-(r / sigma)^2)`` of each neighbour's distance ``r`` to the current plane, starting
    from the 7 nearest: on a plate thinner than the neighbourhood, plain PCA mixes both faces into a
    meaningless normal, the reweighted fit keeps to the point's own face. Its sign is arbitrary.
-2. :func:`orient_normals`: signs made consistent by propagation along a minimum spanning tree of the
-   neighbour graph (Hoppe et al., SIGGRAPH 1992). Edge ``(i, j)`` costs ``1 - |n_i . n_j|`` (Hoppe's
-   Riemannian graph) plus ``|n_i . d_ij| + |n_j . d_ij|`` for the unit offset ``d_ij`` between the
-   two points: the second term keeps the tree on the surface, off the short edges that jump across a
-   thin plate, where flipping to agree with the neighbour would give both sides the same direction.
-   Each connected piece then gets its global sign from a hint:
+2. :func:`orient_normals`: consistent signs, in three steps.
 
-   * ``"outward"``: normals point away from the piece's centre, decided by a vote of the points on
-     the piece's convex hull (closed objects);
-   * ``"up"``: the piece's normals point up (+z) on average (terrain, aerial scans);
-   * ``"viewpoint"``: normals face the scanner positions given in ``viewpoints`` (each point votes
-     for the nearest one); afterwards a point whose normal faces away from every viewpoint is
-     flipped, since a scanner only sees surfaces that face it.
+   a. Seeds from views. Every point is drawn as a disc in its tangent plane into depth buffers: 64
+      orthographic views from all around (``"outward"``, closed objects), from the upper half
+      (``"up"``, terrain), or the six cube-map faces of each scanner position (``"viewpoint"``).
+      A point seen face-on votes for the side of its normal that faces the viewer; points whose
+      votes agree (at least half of the weight, seen in about 3 views or more; one clear view
+      for scanners) are seeds. Points seen from almost nowhere (inside a cup, between touching
+      parts) are not.
+   b. Propagation from the seeds along a minimum spanning tree of the neighbour graph (Hoppe et
+      al., SIGGRAPH 1992; the seeds hang from a virtual root). Edge ``(i, j)`` with unit offset
+      ``d`` costs ``1 - |n_i . n_j| + min(a, 2 - a)``, ``a = |n_i . d| + |n_j . d|``: cheap both
+      along the surface (``a`` near 0, the normals agree) and straight across a thin plate or a
+      narrow gap (``a`` near 2, the outward normals point opposite ways; Hoppe's rule would make
+      them agree and fail there); at sharp edges (normals over 60 degrees apart) the edge is taken
+      as convex.
+   c. Clean-up: an undecided piece (joined by confident edges) flips as a whole when its edges to
+      decided points vote against it, then single points flip where their neighbours and views
+      clearly disagree with them (iterated conditional modes).
+
+Noise: the noise level of the cloud (the flattest quarter's plane-fit residual) widens the depth
+tolerance of the views and keeps offsets along the normals that are within the noise from being
+read as "across a thin plate". Large clouds are voted on a random subset of 40,000 points.
 
 All positions are in the caller's units; the functions are scale-free (neighbour offsets are
 normalised).
@@ -44,7 +54,7 @@ INITIAL_K = 7  # neighbours of the first plane fit
 REWEIGHTS = 2  # refits with weights that fade off the plane
 SIGMA = 1.0  # width of that fade, in mean distances to the 4 nearest neighbours
 ORIENTATIONS = ("outward", "up", "viewpoint")
-_CHUNK = 100_000  # points per KD-tree query / eigen-decomposition batch
+_CHUNK = 25_000  # points per KD-tree query / eigen-decomposition batch (about 0.2 s)
 
 Check = Optional[Callable[[], None]]
 
@@ -69,7 +79,6 @@ class OrientationInfo:
     pieces: int
     seeded: int = 0
     spacing: float = 0.0
-    hidden: Optional[np.ndarray] = None
 
 
 def check_viewpoints(viewpoints) -> Optional[np.ndarray]:
@@ -117,16 +126,16 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
     -------
     normals : (N, 3) float64
         Unit vectors, sign arbitrary.
-    variation : (N,) float64
-        Surface variation ``l0 / (l0 + l1 + l2)`` of the neighbourhood (0 on a plane, 1/3 for
-        isotropic noise): low values mean a trustworthy normal.
+    residual : (N,) float64
+        Weighted root-mean-square distance of the neighbours to the fitted plane (weights of the
+        last refit), in the units of ``points``: the local noise level (0 on an exact plane).
     """
     p = np.ascontiguousarray(points, dtype=np.float64)
     n = len(p)
     k = int(min(max(k, 3), n))
     tree = tree if tree is not None else cKDTree(p)
     normals = np.empty((n, 3))
-    variation = np.empty(n)
+    residual = np.empty(n)
     k0 = min(k, INITIAL_K)
     for s in range(0, n, _CHUNK):
         if check is not None:
@@ -155,15 +164,23 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
             better = score > best_score
             best_score[better] = score[better]
             normals[s:e][better] = normal[better]
-            total = lam.sum(axis=1)
-            var = np.divide(lam[:, 0], total, out=np.full(e - s, 1.0 / 3.0), where=total > 0)
-            variation[s:e][better] = var[better]
+            # Noise: the spread of the neighbours that the fit kept (weights near 1) around the
+            # plane; the other face of a thin plate has weights near 0 and does not inflate it.
+            wn = w / w.sum(axis=1, keepdims=True)
+            residual[s:e][better] = np.sqrt(np.einsum("ck,ck->c", wn, r * r))[better]
             if k0 == k:
                 break
-    return normals, variation
+    return normals, residual
 
 
-def _graph(points, normals, tree, k, check: Check):
+def _across_significant(across, length, i, j, noise):
+    """Whether an edge's offset along the normals stands out of the noise (:data:`SIG_NOISE`)."""
+    if noise is None:
+        return np.ones(len(across), dtype=bool)
+    return 0.5 * across * length > SIG_NOISE * np.maximum(noise[i], noise[j])
+
+
+def _graph(points, normals, tree, k, check: Check, noise=None):
     """Symmetric k-nearest-neighbour graph with orientation costs as a sparse matrix."""
     n = len(points)
     k = int(min(k + 1, n))
@@ -182,8 +199,10 @@ def _graph(points, normals, tree, k, check: Check):
         cos = np.abs(np.sum(normals[i] * normals[j], axis=1))
         across = np.abs(np.sum(normals[i] * off, axis=1)) + np.abs(np.sum(normals[j] * off, axis=1))
         # Along the surface (offset in both tangent planes) or straight across a thin plate or gap
-        # (offset along both normals): either is a confident edge; anything between is not.
-        c = (1.0 - cos) + np.minimum(across, 2.0 - across)
+        # (offset along both normals): either is a confident edge; anything between is not. An
+        # offset along the normals within the noise is noise: the edge runs along the surface.
+        sig = _across_significant(across, d, i, j, noise)
+        c = (1.0 - cos) + np.where(sig, np.minimum(across, 2.0 - across), 0.3 * across)
         rows.append(i)
         cols.append(j)
         cost.append(c + 1e-9)  # explicit zeros would be read as missing edges
@@ -214,20 +233,23 @@ except ImportError:  # pragma: no cover - numba is a declared dependency
         return sign
 
 
-def edge_relation(points, normals, i, j) -> np.ndarray:
+def edge_relation(points, normals, i, j, noise=None) -> np.ndarray:
     """For edges ``(i, j)``: +1 if the estimated normals keep their relative sign, -1 if one flips.
 
     Along the surface (the offset lies in both tangent planes) they agree; straight across a thin
     plate or a narrow gap (the offset runs along both normals) the outward normals point opposite
     ways; at a sharp edge (normals more than 60 degrees apart) the edge is taken as convex, each
-    normal pointing away from the other point.
+    normal pointing away from the other point. ``noise`` (N,), the points' plane-fit residuals:
+    offsets along the normals within :data:`SIG_NOISE` of them do not count as "across".
     """
     off = points[j] - points[i]
-    off = off / np.maximum(np.linalg.norm(off, axis=1), 1e-300)[:, None]
+    length = np.linalg.norm(off, axis=1)
+    off = off / np.maximum(length, 1e-300)[:, None]
     dot = np.sum(normals[i] * normals[j], axis=1)
     a = np.sum(normals[i] * off, axis=1)
     b = np.sum(normals[j] * off, axis=1)
-    smooth = np.where(dot >= 0, 1.0, -1.0) * np.where(np.abs(a) + np.abs(b) > 1.0, -1.0, 1.0)
+    across = (np.abs(a) + np.abs(b) > 1.0) & _across_significant(np.abs(a) + np.abs(b), length, i, j, noise)
+    smooth = np.where(dot >= 0, 1.0, -1.0) * np.where(across, -1.0, 1.0)
     convex = -np.where(a >= 0, 1.0, -1.0) * np.where(b >= 0, 1.0, -1.0)
     return np.where(np.abs(dot) >= 0.5, smooth, convex)
 
@@ -249,7 +271,8 @@ def _basis(d):
     return a, np.cross(d, a)
 
 
-def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=None, check: Check = None):
+def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=None, noise: float = 0.0,
+                     check: Check = None):
     """Signed votes (N,) for each normal from the views in which its point is visible.
 
     A view is an orthographic projection along one of ``directions`` (unit vectors pointing from
@@ -266,7 +289,7 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
     votes = np.zeros(len(p))
     weight = np.zeros(len(p))
     radius = SPLAT_RADIUS * spacing
-    tol = 0.5 * spacing
+    tol = 0.5 * spacing + TOL_NOISE * noise
     pixel = 0.5 * spacing
     views = []  # (origin (3,), a, b, d, perspective)
     centre = 0.5 * (p.min(axis=0) + p.max(axis=0))
@@ -321,22 +344,22 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
 CONSENSUS_ROUNDS = 30
 
 
-def _relations(g, points, normals):
+def _relations(g, points, normals, noise=None):
     """Signed edge weights (sparse, like ``g``): ``w_ij * r_ij`` with ``r_ij = +1`` when the two
     estimated normals should keep their relative sign, ``-1`` when one of them should flip, and
     ``w_ij = exp(-cost_ij / 0.2)`` (confident edges weigh about 1, ambiguous ones about 0)."""
     g = g.tocoo()
     i, j = g.row, g.col
-    rel = edge_relation(points, normals, i, j)
+    rel = edge_relation(points, normals, i, j, noise)
     w = np.exp(-g.data / 0.2)
     return coo_matrix((w * rel, (i, j)), shape=g.shape).tocsr()
 
 
-def _consensus(g, points, normals, sign, votes, check: Check, rounds: int = CONSENSUS_ROUNDS):
+def _consensus(g, points, normals, sign, votes, check: Check, rounds: int = CONSENSUS_ROUNDS, noise=None):
     """Flip isolated wrong signs: repeatedly give each point the sign its neighbours and its own
     view votes agree on (iterated conditional modes on ``-sum_ij A_ij s_i s_j - sum_i v_i s_i``).
     Only points whose evidence clearly disagrees with their sign flip, so the iteration settles."""
-    a = _relations(g, points, normals)
+    a = _relations(g, points, normals, noise)
     s = sign.copy()
     for _ in range(rounds):
         if check is not None:
@@ -349,7 +372,7 @@ def _consensus(g, points, normals, sign, votes, check: Check, rounds: int = CONS
     return s
 
 
-def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3):
+def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, noise=None):
     """Flip whole undecided pieces that disagree with their surroundings.
 
     Points the views did not decide, joined by confident edges (cost < 0.5), form pieces (say the
@@ -364,7 +387,7 @@ def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3):
     n_pieces, labels = connected_components(
         coo_matrix((np.ones(int(inner.sum())), (i[inner], j[inner])), shape=(n, n)), directed=False
     )
-    rel = edge_relation(points, normals, i, j)
+    rel = edge_relation(points, normals, i, j, noise)
     boundary = free[i] & (labels[i] != labels[j])
     bi, bj, br = i[boundary], j[boundary], rel[boundary]
     # Edges to points the views decided count fully; to other undecided pieces (which may be
@@ -382,7 +405,7 @@ def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3):
     return s
 
 
-def _seeded_propagation(g, points, normals, seed_sign):
+def _seeded_propagation(g, points, normals, seed_sign, noise=None):
     """Orient every point from the seeds: ``seed_sign`` (N,) is +1/-1 for seeds, 0 elsewhere.
 
     Seeds hang from a virtual root; the rest joins the seeds along the minimum spanning tree of the
@@ -413,18 +436,22 @@ def _seeded_propagation(g, points, normals, seed_sign):
     start = np.where(seed_sign != 0, seed_sign, 1.0)
     relation = np.ones(n)
     child = np.flatnonzero(pred >= 0)
-    relation[child] = edge_relation(points, normals, pred[child], child)
+    relation[child] = edge_relation(points, normals, pred[child], child, noise)
     sign = _propagate_signs(order, pred, relation, start)
     return sign, int(n_pieces)
 
 
 N_VIEWS = 64  # orthographic views for "outward" (all around) and "up" (upper half)
+VIEW_POINTS = 40_000  # points drawn into the views at most
 # A point's sign is taken from the views when the votes agree this much (|sum| / sum of |votes|);
 # otherwise it is propagated from its neighbours.
 VOTE_AGREEMENT = 0.5
 # ... and when their total weight (about the number of views that saw the point face-on) is at least
 # this: points seen from only one or two views are mostly seen through gaps between the discs.
 VOTE_WEIGHT = 3.0
+TOL_NOISE = 1.5  # depth tolerance of the views, in noise levels (on top of half a spacing)
+SIG_NOISE = 1.5  # offsets along the normals below this many noise levels are noise
+NOISE_QUANTILE = 0.25  # the noise level is this quantile of the points' plane-fit residuals
 SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
 VIEWPOINT_VOTE_WEIGHT = 0.25
 
@@ -447,6 +474,7 @@ def orient_normals(
     viewpoints=None,
     k: int = DEFAULT_GRAPH_K,
     tree: Optional[cKDTree] = None,
+    noise: Optional[np.ndarray] = None,
     check: Check = None,
 ):
     """Give unoriented unit normals consistent signs.
@@ -462,6 +490,9 @@ def orient_normals(
         Scanner positions, in the same frame as ``points`` (needed for ``"viewpoint"``).
     k : int
         Neighbours per point in the propagation graph.
+    noise : (N,) float64, optional
+        Local noise level of each point (the ``residual`` of :func:`pca_normals`), in the units of
+        ``points``: offsets within it are not read as geometry.
 
     Returns
     -------
@@ -475,24 +506,36 @@ def orient_normals(
     orientation = check_orientation(orientation, vp)
     tree = tree if tree is not None else cKDTree(p)
     spacing = median_spacing(p, tree)
+    # The views see a random subset of at most VIEW_POINTS points (drawn as larger discs): enough
+    # to seed the propagation, at a bounded cost.
+    n = len(p)
+    sub = np.arange(n)
+    view_spacing = spacing
+    if n > VIEW_POINTS:
+        sub = np.sort(np.random.default_rng(0).choice(n, VIEW_POINTS, replace=False))
+        view_spacing = spacing * float(np.sqrt(n / VIEW_POINTS))
+    noise_level = 0.0 if noise is None else float(np.median(noise))
     if orientation == "viewpoint":
-        votes, weight = visibility_votes(p, nrm, spacing, viewpoints=vp, check=check)
+        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, viewpoints=vp, noise=noise_level, check=check)
     else:
         dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
-        votes, weight = visibility_votes(p, nrm, spacing, directions=-dirs, check=check)
+        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, directions=-dirs, noise=noise_level,
+                                  check=check)
+    votes = np.zeros(n)
+    weight = np.zeros(n)
+    votes[sub], weight[sub] = sv, sw
     agree = np.divide(np.abs(votes), weight, out=np.zeros_like(votes), where=weight > 0)
     # A few scanners give few views: one clear view decides there.
     min_weight = VOTE_WEIGHT if orientation != "viewpoint" else VIEWPOINT_VOTE_WEIGHT
     seed = np.where((agree >= VOTE_AGREEMENT) & (weight >= min_weight), np.sign(votes), 0.0)
-    hidden = weight == 0
     if check is not None:
         check()
-    g = _graph(p, nrm, tree, k, check)
-    sign, pieces = _seeded_propagation(g, p, nrm, seed)
-    sign = _flip_pieces(g, p, nrm, sign, seed, check)
-    sign = _consensus(g, p, nrm, sign, votes, check)
+    g = _graph(p, nrm, tree, k, check, noise)
+    sign, pieces = _seeded_propagation(g, p, nrm, seed, noise)
+    sign = _flip_pieces(g, p, nrm, sign, seed, check, noise=noise)
+    sign = _consensus(g, p, nrm, sign, votes, check, noise=noise)
     info = OrientationInfo(orientation=orientation, pieces=pieces,
-                           seeded=int((seed != 0).sum()), spacing=spacing, hidden=hidden)
+                           seeded=int((seed != 0).sum()), spacing=spacing)
     return nrm * sign[:, None], info
 
 
@@ -530,5 +573,8 @@ def estimate_normals(
     orientation = check_orientation(orientation, vp)
     p = np.ascontiguousarray(points, dtype=np.float64)
     tree = cKDTree(p)
-    nrm, _ = pca_normals(p, k, tree=tree, check=check)
-    return orient_normals(p, nrm, orientation=orientation, viewpoints=vp, tree=tree, check=check)
+    nrm, residual = pca_normals(p, k, tree=tree, check=check)
+    # One noise level for the whole cloud, from its flattest quarter: residuals also grow with
+    # curvature and at sharp edges, where offsets along the normals are geometry, not noise.
+    noise = np.full(len(p), float(np.quantile(residual, NOISE_QUANTILE)))
+    return orient_normals(p, nrm, orientation=orientation, viewpoints=vp, tree=tree, noise=noise, check=check)

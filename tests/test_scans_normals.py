@@ -18,12 +18,12 @@ def agreement(estimated, true):
 
 def test_pca_normals_are_unit_and_fit_planes():
     p, n = box_points(2000, seed=3)
-    e, variation = pca_normals(p, 16)
+    e, residual = pca_normals(p, 16)
     assert np.allclose(np.linalg.norm(e, axis=1), 1.0)
     # Away from the box's edges every neighbourhood is planar: the normal is exact up to sign.
     inner = (np.abs(p) < 0.4).sum(axis=1) == 2
     assert np.median(np.abs(np.sum(e[inner] * n[inner], axis=1))) > 0.999
-    assert np.median(variation[inner]) < 1e-6
+    assert np.median(residual[inner]) < 1e-9
 
 
 @pytest.mark.parametrize("shape", ["sphere", "box"])
