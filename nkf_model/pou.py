@@ -12,7 +12,7 @@ function is::
 
 whose weights sum to one everywhere (:mod:`nkf_model._pou_kernels`). Patches with fewer than
 :data:`MIN_PATCH_POINTS` points use a coarse global fit ``f0`` instead (an exact solve on
-:data:`COARSE_POINTS` points picked by farthest-point sampling, sampled once on a 64^3 grid and
+:data:`COARSE_POINTS` points picked by farthest-point sampling, sampled once on a 48^3 grid and
 interpolated), which gives the sign far from the data. Cost: the local solves are O(N P^2) in
 total for P points per patch, and every evaluation sums over the centres of 8 patches (about 16 P
 kernel evaluations), whatever N is.
@@ -41,8 +41,8 @@ from .solve import KernelFunction, solve_dense
 POINTS_PER_PATCH = 50  # target median of points per patch
 MAX_PATCH_POINTS = 4 * POINTS_PER_PATCH  # larger patches are randomly thinned to this
 MIN_PATCH_POINTS = 8  # patches with fewer points use the coarse global fit
-COARSE_POINTS = 1500  # points of the coarse global fit
-COARSE_GRID = 64  # cells per side of the grid the coarse fit is sampled on
+COARSE_POINTS = 1000  # points of the coarse global fit
+COARSE_GRID = 48  # cells per side of the grid the coarse fit is sampled on
 
 Check = Optional[Callable[[], None]]
 Step = Optional[Callable[[float], None]]
