@@ -48,3 +48,7 @@ class MethodUnavailableError(NKFInputError):
 
 class Cancelled(Exception):
     """The work was stopped because the caller's cancel event was set."""
+
+
+class WeightsError(NKFInputError):
+    """A weights file for the learned kernel is missing, corrupt, or made for another model."""
