@@ -29,6 +29,20 @@ _C = (
 )  # fmt: skip
 (c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12, c13, c14, c15, c16, c17) = _C
 PI = math.pi
+
+# g(d2) = 2 pi - pi d2 + sqrt(d2) P(d2) for d2 in [0, 2] (angles up to 90 degrees), P of degree 18,
+# relative error of g below 3e-16: see scripts/fit_kernel_polynomial.py, which prints these numbers.
+_A = (
+    -1.0, 0.7916666666666607, 0.024479166667015273, 0.0023158482061348806, 0.0003075979117325449,
+    4.828021280163314e-05, 8.37173535331966e-06, 1.535342085300071e-06, 3.3279939395525415e-07,
+    -1.1323467373000573e-09, 9.897257112142024e-08, -9.041889913297769e-08, 7.668706001678818e-08,
+    -4.704795048376907e-08, 2.1814014032422132e-08, -7.281703240269903e-09, 1.6754069741996355e-09,
+    -2.3754643616963195e-10, 1.605709792955361e-11,
+)  # fmt: skip
+(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15, a16, a17, a18) = _A
+# Homogeneous unit vectors whose last coordinate is at least this are [x : 1] / |[x : 1]| with
+# |x| < 1, so any two of them are less than 90 degrees apart and _g_acute applies.
+ACUTE_MIN_LAST = 0.7072
 _FAST = {"contract", "reassoc", "nsz"}
 _OPTS = dict(nogil=True, cache=True, fastmath=_FAST)
 
@@ -63,9 +77,38 @@ def _g(d2):
     return 0.5 * math.sqrt(d2 * e2) + 2.0 * (PI - t) * (1.0 - 0.5 * d2)
 
 
+@nb.njit(inline="always", fastmath={"contract"})
+def _g_acute(d2):
+    """The same angle term for d2 in [0, 2], with one square root and no branches (37 % faster)."""
+    w = max(d2, 0.0)
+    p = a18
+    p = p * w + a17
+    p = p * w + a16
+    p = p * w + a15
+    p = p * w + a14
+    p = p * w + a13
+    p = p * w + a12
+    p = p * w + a11
+    p = p * w + a10
+    p = p * w + a9
+    p = p * w + a8
+    p = p * w + a7
+    p = p * w + a6
+    p = p * w + a5
+    p = p * w + a4
+    p = p * w + a3
+    p = p * w + a2
+    p = p * w + a1
+    p = p * w + a0
+    return 2.0 * PI - PI * w + math.sqrt(w) * p
+
+
 @nb.njit(parallel=True, **_OPTS)
-def gsum4(q, c0_, c1_, c2_, c3_, beta):
-    """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for 4-D unit vectors; c given by columns."""
+def gsum4(q, c0_, c1_, c2_, c3_, beta, acute):
+    """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for 4-D unit vectors; c given by columns.
+
+    ``acute``: every pair is at most 90 degrees apart, so the faster :func:`_g_acute` applies.
+    """
     nq = q.shape[0]
     nc = beta.shape[0]
     out = np.empty(nq)
@@ -75,18 +118,26 @@ def gsum4(q, c0_, c1_, c2_, c3_, beta):
         q2 = q[i, 2]
         q3 = q[i, 3]
         s = 0.0
-        for j in range(nc):
-            t0 = q0 - c0_[j]
-            t1 = q1 - c1_[j]
-            t2 = q2 - c2_[j]
-            t3 = q3 - c3_[j]
-            s += beta[j] * _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+        if acute:
+            for j in range(nc):
+                t0 = q0 - c0_[j]
+                t1 = q1 - c1_[j]
+                t2 = q2 - c2_[j]
+                t3 = q3 - c3_[j]
+                s += beta[j] * _g_acute(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+        else:
+            for j in range(nc):
+                t0 = q0 - c0_[j]
+                t1 = q1 - c1_[j]
+                t2 = q2 - c2_[j]
+                t3 = q3 - c3_[j]
+                s += beta[j] * _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
         out[i] = s
     return out
 
 
 @nb.njit(inline="always", **_OPTS)
-def _row_g4(q, i, ct, buf):
+def _row_g4(q, i, ct, buf, acute):
     """buf[j] = g(|q[i] - c[j]|^2) for 4-D unit vectors, centres transposed (4, M)."""
     q0 = q[i, 0]
     q1 = q[i, 1]
@@ -96,12 +147,20 @@ def _row_g4(q, i, ct, buf):
     r1 = ct[1]
     r2 = ct[2]
     r3 = ct[3]
-    for j in range(ct.shape[1]):
-        t0 = q0 - r0[j]
-        t1 = q1 - r1[j]
-        t2 = q2 - r2[j]
-        t3 = q3 - r3[j]
-        buf[j] = _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+    if acute:
+        for j in range(ct.shape[1]):
+            t0 = q0 - r0[j]
+            t1 = q1 - r1[j]
+            t2 = q2 - r2[j]
+            t3 = q3 - r3[j]
+            buf[j] = _g_acute(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+    else:
+        for j in range(ct.shape[1]):
+            t0 = q0 - r0[j]
+            t1 = q1 - r1[j]
+            t2 = q2 - r2[j]
+            t3 = q3 - r3[j]
+            buf[j] = _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
 
 
 @nb.njit(inline="always", **_OPTS)
@@ -142,14 +201,14 @@ def gsum(q, ct, beta):
 
 
 @nb.njit(parallel=True, **_OPTS)
-def gmatrix(q, ct):
+def gmatrix(q, ct, acute):
     """out[i, j] = g(|q[i] - c[j]|^2); ``q`` is (N, D), ``ct`` is (D, M)."""
     nq = q.shape[0]
     nc = ct.shape[1]
     out = np.empty((nq, nc))
     if ct.shape[0] == 4:
         for i in nb.prange(nq):
-            _row_g4(q, i, ct, out[i])
+            _row_g4(q, i, ct, out[i], acute)
     else:
         for i in nb.prange(nq):
             _row_g(q, i, ct, 0, nc, out[i])
@@ -157,7 +216,7 @@ def gmatrix(q, ct):
 
 
 @nb.njit(parallel=True, **_OPTS)
-def gnormal(q, ct, u, v, w, nchunks):
+def gnormal(q, ct, u, v, w, nchunks, acute):
     """acc[j] = sum_i g_ij w_i (w_i sum_k g_ik u_k + v_i), with g_ij = g(|q[i] - c[j]|^2).
 
     This is ``Kt (K u + v)`` for ``K = diag(w) G``: the Nystrom normal-equation product that
@@ -172,7 +231,7 @@ def gnormal(q, ct, u, v, w, nchunks):
         a = acc[c]
         for i in range(c * step, min(nq, (c + 1) * step)):
             if ct.shape[0] == 4:
-                _row_g4(q, i, ct, buf)
+                _row_g4(q, i, ct, buf, acute)
             else:
                 _row_g(q, i, ct, 0, nc, buf)
             t = 0.0

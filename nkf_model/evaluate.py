@@ -1,16 +1,18 @@
 """Stage 5: evaluate the fitted function on a grid, only near its zero level set.
 
 The grid covers the cube ``[-GRID_HALF, GRID_HALF]^3`` of the unit box with ``resolution`` cells
-per side. Instead of all ``(R+1)^3`` nodes, the function is evaluated on a coarse grid (about 32
-cells per side), and at each finer level only inside the cells whose corners change sign, grown by
-one cell on every side. The number of evaluations then grows as R^2 (the surface), not R^3.
+per side. Instead of all ``(R+1)^3`` nodes, the function is evaluated on a coarse grid (24 to 48
+cells per side), and at each finer level only inside the cells whose corners change sign; from there
+the fine level follows the surface (a flood fill) into every coarse cell it runs into, so the fine band
+is closed even where the coarse grid missed a crossing. The number of evaluations then grows as R^2
+(the surface), not R^3.
 Node values are kept in sparse arrays (sorted int64 keys), so memory also grows as R^2.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
 
 import numpy as np
 
@@ -19,7 +21,7 @@ import numpy as np
 GRID_HALF = 0.55
 MIN_RESOLUTION = 16
 MAX_RESOLUTION = 1024
-COARSEST = 24  # coarse levels stop halving below this many cells per side
+COARSEST = 16  # the coarsest level has 16 to 32 cells per side
 
 _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
 _NEIGHBOURS = np.array(
@@ -31,11 +33,20 @@ _CHILD_NODES = np.array(
 
 
 def levels(resolution: int) -> list[int]:
-    """Cells per side at each level, coarse to fine, ending at ``resolution``."""
-    out = [int(resolution)]
-    while out[0] % 2 == 0 and out[0] // 2 >= COARSEST:
-        out.insert(0, out[0] // 2)
-    return out
+    """Cells per side of the (padded) grid at each level, coarse to fine.
+
+    The finest level has ``resolution`` cells per side, rounded up to a multiple of ``2**(L-1)`` so
+    that every level halves the one after it; the cell size stays ``2 * GRID_HALF / resolution`` and
+    the extra cells (fewer than ``2**(L-1)``) lie past the grid's far side, where nothing is meshed.
+    The coarsest level has between ``COARSEST`` and ``2 * COARSEST`` cells per side.
+    """
+    r = int(resolution)
+    k = 0
+    while (r >> (k + 1)) >= COARSEST:
+        k += 1
+    step = 1 << k
+    top = -(-r // step) * step
+    return [top >> (k - i) for i in range(k + 1)]
 
 
 def node_keys(ijk: np.ndarray, r: int) -> np.ndarray:
@@ -54,9 +65,10 @@ def cells_from_keys(keys: np.ndarray, r: int) -> np.ndarray:
     return np.stack([keys // (r * r), (keys // r) % r, keys % r], axis=1)
 
 
-def node_positions(ijk: np.ndarray, r: int) -> np.ndarray:
-    """Unit-box positions (N, 3) float64 of nodes on the ``r``-cell grid."""
-    return -GRID_HALF + ijk * (2.0 * GRID_HALF / r)
+def node_positions(ijk: np.ndarray, r: int, cell: float | None = None) -> np.ndarray:
+    """Unit-box positions (N, 3) float64 of nodes on the ``r``-cell grid (cell size ``cell``,
+    default ``2 * GRID_HALF / r``)."""
+    return -GRID_HALF + ijk * (2.0 * GRID_HALF / r if cell is None else cell)
 
 
 @dataclass
@@ -66,17 +78,21 @@ class SparseField:
     Attributes
     ----------
     resolution : int
-        Cells per side of the finest grid.
+        Cells per side of the finest grid over the box ``[-GRID_HALF, GRID_HALF]^3``.
     keys : (K,) int64, sorted
-        :func:`node_keys` of the nodes with known values.
+        :func:`node_keys` of the nodes with known values, on the padded grid of ``grid_cells``
+        cells per side (see :func:`levels`).
     values : (K,) float64
         Function values at those nodes.
     band : (B, 3) int64
-        Finest-grid cells whose eight corners are known and change sign.
+        Finest-grid cells (each index below ``resolution``) whose eight corners are known and change
+        sign.
     evaluations : int
         Number of points at which the function was evaluated, over all levels.
     level_evaluations : list of (int, int)
         (cells per side, points evaluated) for each level.
+    grid_cells : int
+        Cells per side of the padded finest grid (>= ``resolution``).
     """
 
     resolution: int
@@ -85,10 +101,15 @@ class SparseField:
     band: np.ndarray
     evaluations: int
     level_evaluations: list
+    grid_cells: int = 0
+
+    def __post_init__(self):
+        if not self.grid_cells:
+            self.grid_cells = self.resolution
 
     def lookup(self, ijk: np.ndarray) -> np.ndarray:
         """Values at nodes (N, 3); NaN where unknown."""
-        return _lookup(self.keys, self.values, node_keys(ijk, self.resolution))
+        return _lookup(self.keys, self.values, node_keys(ijk, self.grid_cells))
 
 
 def _lookup(keys, values, query):
@@ -123,19 +144,45 @@ def _crossing_dense(v: np.ndarray) -> np.ndarray:
     return np.argwhere(anyneg & ~allneg).astype(np.int64)
 
 
-def _dilate(cells: np.ndarray, r: int) -> np.ndarray:
-    """Cells (N, 3) grown by one cell in all 26 directions, clipped to the grid, unique."""
-    keys = cell_keys(cells, r)
+def _exit_parents(local, child, parent, r_prev, done_parents):
+    """Coarse cells the fine surface runs into from crossing child cells.
+
+    ``local`` (P, 3, 3, 3) holds the 27 node values of each crossing child's parent, ``child`` (P, 3)
+    the child's offset (0 or 1 per axis) and ``parent`` (P, 3) the parent cell. The bilinear surface
+    inside a cell leaves it through a face exactly when that face's corners change sign, so the
+    neighbour across each outer face with a sign change is needed. Returns new parents (K, 3).
+    """
+    neg = local < 0
+    out = []
+    idx = np.arange(len(child))
     for axis in range(3):
-        ijk = cells_from_keys(keys, r)
-        parts = [keys]
-        for d in (-1, 1):
-            moved = ijk.copy()
-            moved[:, axis] += d
-            ok = (moved[:, axis] >= 0) & (moved[:, axis] < r)
-            parts.append(cell_keys(moved[ok], r))
-        keys = np.unique(np.concatenate(parts))
-    return cells_from_keys(keys, r)
+        side = child[:, axis]  # the child's outer face on this axis is at local node 2*side
+        for s in (0, 1):
+            sel = idx[side == s]
+            if len(sel) == 0:
+                continue
+            node = 2 * s
+            # The face's 4 corners: node index `node` on `axis`, child offset .. offset+1 on the others.
+            others = [a for a in range(3) if a != axis]
+            corners = []
+            for da in (0, 1):
+                for db in (0, 1):
+                    ix = [None, None, None]
+                    ix[axis] = np.full(len(sel), node)
+                    ix[others[0]] = child[sel, others[0]] + da
+                    ix[others[1]] = child[sel, others[1]] + db
+                    corners.append(neg[sel, ix[0], ix[1], ix[2]])
+            c = np.stack(corners, axis=1)
+            exits = c.any(axis=1) & ~c.all(axis=1)
+            nb = parent[sel[exits]].copy()
+            nb[:, axis] += 1 if s == 1 else -1
+            ok = (nb[:, axis] >= 0) & (nb[:, axis] < r_prev)
+            out.append(nb[ok])
+    if not out:
+        return np.zeros((0, 3), dtype=np.int64)
+    cand = np.unique(cell_keys(np.concatenate(out), r_prev))
+    cand = cand[~np.isin(cand, done_parents, assume_unique=True)]
+    return cells_from_keys(cand, r_prev)
 
 
 def evaluate_sparse(
@@ -143,8 +190,9 @@ def evaluate_sparse(
     resolution: int,
     *,
     chunk: int = 65536,
-    check: Optional[Callable[[], None]] = None,
-    step: Optional[Callable[[float], None]] = None,
+    check: Callable[[], None] | None = None,
+    step: Callable[[float], None] | None = None,
+    seeds: np.ndarray | None = None,
 ) -> SparseField:
     """Evaluate ``f`` coarse to fine around its zero level set.
 
@@ -160,19 +208,33 @@ def evaluate_sparse(
         Raises to cancel; called between chunks.
     step : callable
         ``step(fraction)`` progress within this stage.
+    seeds : (S, 3) float, optional
+        Unit-box points known to lie on the surface (the input points). The cells holding them are
+        refined at every level, so no part of the surface near the data can be missed by the coarse
+        grid.
 
     Returns
     -------
     SparseField
     """
     lv = levels(resolution)
+    finest_cell = 2.0 * GRID_HALF / resolution
+    top = lv[-1]
+
+    def seed_cells(r):
+        if seeds is None or len(seeds) == 0:
+            return np.zeros((0, 3), dtype=np.int64)
+        h = finest_cell * top / r
+        c = np.floor((np.asarray(seeds, dtype=np.float64) + GRID_HALF) / h).astype(np.int64)
+        c = np.clip(c, 0, r - 1)
+        return cells_from_keys(np.unique(cell_keys(c, r)), r)
     total_done = 0
     per_level = []
 
     def run(ijk, r, expected_rest):
         nonlocal total_done
         out = np.empty(len(ijk))
-        pts = node_positions(ijk, r)
+        pts = node_positions(ijk, r, finest_cell * top / r)
         for s in range(0, len(ijk), chunk):
             if check is not None:
                 check()
@@ -194,26 +256,48 @@ def evaluate_sparse(
 
     for li in range(1, len(lv)):
         r_prev, r = lv[li - 1], lv[li]
-        active = _dilate(crossing, r_prev) if len(crossing) else crossing
-        # The 27 nodes of the 8 children of each active cell, on the finer grid.
-        child_nodes = (2 * active[:, None, :] + _CHILD_NODES[None]).reshape(-1, 3)
-        new_keys, inverse = np.unique(node_keys(child_nodes, r), return_inverse=True)
-        n = r + 1
-        ijk = np.stack([new_keys // (n * n), (new_keys // n) % n, new_keys % n], axis=1)
-        # Carry over the coarse values at even nodes; evaluate the rest.
-        even = (ijk % 2 == 0).all(axis=1)
-        vals = np.full(len(new_keys), np.nan)
-        vals[even] = _lookup(keys, values, node_keys(ijk[even] // 2, r_prev))
-        todo = np.isnan(vals)
         remaining_levels = len(lv) - 1 - li
-        vals[todo] = run(ijk[todo], r, expected_rest=4 * int(todo.sum()) * remaining_levels)
-        per_level.append((r, int(todo.sum())))
-        keys, values = new_keys, vals
-        local = vals[inverse].reshape(len(active), 3, 3, 3)
-        which = np.argwhere(_crossing_children(local))  # (parent, a, b, c)
-        crossing = 2 * active[which[:, 0]] + which[:, 1:]
-        # A cell can be the child of only one parent, so these are unique.
-    band = crossing
+        extra = seed_cells(r_prev)
+        if len(extra):
+            crossing = cells_from_keys(np.union1d(cell_keys(crossing, r_prev), cell_keys(extra, r_prev)), r_prev)
+        lvl_keys = np.zeros(0, dtype=np.int64)
+        lvl_vals = np.zeros(0)
+        done_parents = np.zeros(0, dtype=np.int64)
+        fine = []
+        frontier = crossing
+        evaluated = 0
+        # Flood fill along the surface: evaluate the children of the coarse crossing cells, then of
+        # every coarse cell the fine surface runs into, until the fine band is closed.
+        while len(frontier):
+            done_parents = np.union1d(done_parents, cell_keys(frontier, r_prev))
+            child_nodes = (2 * frontier[:, None, :] + _CHILD_NODES[None]).reshape(-1, 3)
+            ck, inverse = np.unique(node_keys(child_nodes, r), return_inverse=True)
+            vals = _lookup(lvl_keys, lvl_vals, ck) if len(lvl_keys) else np.full(len(ck), np.nan)
+            new = np.isnan(vals)
+            nk = ck[new]
+            n = r + 1
+            ijk = np.stack([nk // (n * n), (nk // n) % n, nk % n], axis=1)
+            nv = np.full(len(nk), np.nan)
+            even = (ijk % 2 == 0).all(axis=1)
+            if len(keys):
+                nv[even] = _lookup(keys, values, node_keys(ijk[even] // 2, r_prev))
+            todo = np.isnan(nv)
+            nv[todo] = run(ijk[todo], r, expected_rest=4 * int(todo.sum()) * remaining_levels)
+            evaluated += int(todo.sum())
+            vals[new] = nv
+            order = np.argsort(np.concatenate([lvl_keys, nk]), kind="stable")
+            lvl_keys = np.concatenate([lvl_keys, nk])[order]
+            lvl_vals = np.concatenate([lvl_vals, nv])[order]
+            local = vals[inverse].reshape(len(frontier), 3, 3, 3)
+            which = np.argwhere(_crossing_children(local))  # (parent, a, b, c)
+            cells = 2 * frontier[which[:, 0]] + which[:, 1:]
+            fine.append(cells)
+            frontier = _exit_parents(local[which[:, 0]], which[:, 1:], frontier[which[:, 0]], r_prev, done_parents)
+        per_level.append((r, evaluated))
+        keys, values = lvl_keys, lvl_vals
+        # A fine cell is the child of only one parent, and each parent is visited once: no repeats.
+        crossing = np.concatenate(fine) if fine else np.zeros((0, 3), dtype=np.int64)
+    band = crossing[(crossing < resolution).all(axis=1)]
 
     if step is not None:
         step(1.0)
@@ -224,6 +308,7 @@ def evaluate_sparse(
         band=band,
         evaluations=total_done,
         level_evaluations=per_level,
+        grid_cells=top,
     )
 
 

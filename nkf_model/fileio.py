@@ -148,7 +148,10 @@ def check_output_path(path, formats=MESH_FORMATS) -> Path:
 
 def _atomic_write(path: Path, write, formats=MESH_FORMATS) -> None:
     path = check_output_path(path, formats)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent or ".")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent or ".")
+    except OSError as exc:
+        raise OutputPathError(f"{path}: cannot be written ({exc.strerror or exc})") from None
     try:
         with os.fdopen(fd, "wb") as fh:
             write(fh)

@@ -7,23 +7,24 @@ panels of :data:`BLOCK` columns and call ``check()`` after each panel.
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg import lapack, solve_triangular
 
 BLOCK = 1024
-# Below this size one LAPACK call takes under about 0.15 s and is not worth splitting.
-SINGLE_CALL = 3000
-# Floating-point operations between two calls of ``check`` (about 0.1-0.2 s on the reference CPU).
-FLOPS_PER_CHECK = 5e9
+# Below this size one LAPACK call takes under about 0.1 s and is not worth splitting.
+SINGLE_CALL = 2500
+# Floating-point operations between two calls of ``check`` (about 0.05 s on one core of the reference
+# CPU, so that a cancel request is seen within 0.5 s even on a busy machine).
+FLOPS_PER_CHECK = 1.5e9
 
 
 class NotPositiveDefinite(np.linalg.LinAlgError):
     """The matrix handed to :func:`cholesky` is not numerically positive definite."""
 
 
-def cholesky(a: np.ndarray, check: Optional[Callable[[], None]] = None, block: int = BLOCK) -> np.ndarray:
+def cholesky(a: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK) -> np.ndarray:
     """Lower Cholesky factor ``L`` with ``a = L L^T``, computed in place of a copy of ``a``.
 
     Only the lower triangle of ``a`` (n, n) float64 is read. Raises :class:`NotPositiveDefinite`.
@@ -60,7 +61,7 @@ def cholesky(a: np.ndarray, check: Optional[Callable[[], None]] = None, block: i
     return L
 
 
-def gram_of_factor(L: np.ndarray, check: Optional[Callable[[], None]] = None, block: int = BLOCK) -> np.ndarray:
+def gram_of_factor(L: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK) -> np.ndarray:
     """``S = L^T L`` for lower-triangular ``L`` (n, n); only the lower triangle of ``S`` is filled."""
     n = L.shape[0]
     S = np.zeros_like(L)

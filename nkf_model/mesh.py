@@ -8,8 +8,8 @@ key, not by comparing float coordinates.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Optional
 
 import numpy as np
 from skimage.measure import marching_cubes
@@ -58,8 +58,8 @@ class Mesh:
 
 def triangulate(
     field_: SparseField,
-    check: Optional[Callable[[], None]] = None,
-    step: Optional[Callable[[float], None]] = None,
+    check: Callable[[], None] | None = None,
+    step: Callable[[float], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Marching cubes at level 0 over the band cells of ``field_``.
 

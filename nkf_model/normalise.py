@@ -28,7 +28,7 @@ class Normalisation:
     scale: float
 
     @classmethod
-    def fit(cls, points: np.ndarray) -> "Normalisation":
+    def fit(cls, points: np.ndarray) -> Normalisation:
         """Fit the map to ``points`` ((N, 3), any float dtype)."""
         p = np.asarray(points, dtype=np.float64)
         lo = p.min(axis=0)

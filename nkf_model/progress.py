@@ -9,7 +9,7 @@ work, and each chunk is sized to take well under 0.5 s on a slow CPU.
 from __future__ import annotations
 
 import time
-from typing import Callable, Optional
+from collections.abc import Callable
 
 from .errors import Cancelled
 
@@ -41,7 +41,7 @@ class Tracker:
         The stages this run goes through, in order.
     """
 
-    def __init__(self, progress: Optional[ProgressFn] = None, cancel=None, stages=None):
+    def __init__(self, progress: ProgressFn | None = None, cancel=None, stages=None):
         self._progress = progress
         self._cancel = cancel
         stages = list(stages or ("normalise", "augment", "solve", "evaluate", "mesh"))

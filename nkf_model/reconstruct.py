@@ -9,9 +9,10 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .augment import augment, default_eps
 from .engines import select_engine
@@ -32,6 +33,11 @@ DEFAULT_RESOLUTION = 128
 # Up to this many constraints (2 per point) the solve is exact; beyond it, Falkon with this many
 # Nystrom centres. See docs/benchmarks.md for the trade-off of this number against IoU and time.
 DEFAULT_CENTRES = 6000
+# Relative residual at which Falkon's conjugate gradient stops.
+FALKON_TOL = 1e-9
+# Threads for dense linear algebra (OpenBLAS). One: on a busy 2-core machine (Blender's UI, another
+# job) two OpenBLAS threads ran a 2,000 x 2,000 Cholesky 8x slower than one, and a 6,000 one 2x slower.
+BLAS_THREADS = 1
 
 
 class InputWarning(UserWarning):
@@ -70,9 +76,9 @@ def reconstruct(
     lam: float = DEFAULT_LAM,
     resolution: int = DEFAULT_RESOLUTION,
     device: str = "auto",
-    progress: Optional[Callable[[float, str], None]] = None,
+    progress: Callable[[float, str], None] | None = None,
     cancel=None,
-    eps: Optional[float] = None,
+    eps: float | None = None,
     max_centres: int = DEFAULT_CENTRES,
     seed: int = 0,
 ) -> Mesh:
@@ -123,6 +129,11 @@ def reconstruct(
         ``cancel`` was set.
     """
     check_settings(method, lam, resolution, device, eps, max_centres)
+    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        return _reconstruct(points, normals, method, lam, resolution, device, progress, cancel, eps, max_centres, seed)
+
+
+def _reconstruct(points, normals, method, lam, resolution, device, progress, cancel, eps, max_centres, seed):
     if method == "nkf":
         raise MethodUnavailableError(
             "method 'nkf' needs trained weights, which this version does not ship yet; "
@@ -134,7 +145,7 @@ def reconstruct(
     track.begin("normalise")
     clean = clean_points(points, normals)
     for line in clean.warnings():
-        warnings.warn(line, InputWarning, stacklevel=2)
+        warnings.warn(line, InputWarning, stacklevel=3)
     norm = Normalisation.fit(clean.points)
     x = norm.to_unit(clean.points)
     n = len(x)
@@ -151,12 +162,14 @@ def reconstruct(
     else:
         half = farthest_point_sample(x, max_centres // 2, seed=seed)
         idx = np.concatenate([half, half + n])
-        alpha, info = solve_falkon(a, y, idx, float(lam), engine, check=track.check, step=track.step)
+        alpha, info = solve_falkon(a, y, idx, float(lam), engine, tol=FALKON_TOL, check=track.check, step=track.step)
         centres = a[idx]
     fn = KernelFunction(centres, alpha, engine)
 
     track.begin("evaluate")
-    field_ = evaluate_sparse(lambda p: fn(p, check=track.check), resolution, check=track.check, step=track.step)
+    field_ = evaluate_sparse(
+        lambda p: fn(p, check=track.check), resolution, check=track.check, step=track.step, seeds=x
+    )
 
     track.begin("mesh")
     unit_v, faces = triangulate(field_, check=track.check, step=track.step)

@@ -15,8 +15,9 @@ constraints ``(a_i, y_i)`` and regularisation ``lam`` (per constraint), it minim
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -74,7 +75,7 @@ class KernelFunction:
     centres: np.ndarray
     alpha: np.ndarray
     engine: Engine
-    features: Optional[Callable[[np.ndarray], np.ndarray]] = None
+    features: Callable[[np.ndarray], np.ndarray] | None = None
 
     def __post_init__(self):
         self._cu, self._cr = split_unit(self.centres)
@@ -105,7 +106,7 @@ def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, check:
     """
     u, r = split_unit(a)
     n = len(a)
-    G = engine.kernel_matrix(u, r, u, r)
+    G = engine.kernel_matrix(u, r, u, r, check=check)
     if check is not None:
         check()
     G[np.diag_indices(n)] += n * lam
@@ -165,7 +166,7 @@ def solve_falkon(
     xu, xr = split_unit(a)
     cu, cr = xu[centre_index], xr[centre_index]
     m = len(centre_index)
-    kmm = engine.kernel_matrix(cu, cr, cu, cr)
+    kmm = engine.kernel_matrix(cu, cr, cu, cr, check=check)
     if check is not None:
         check()
     # T = chol(K_MM + jitter I) (here lower: K_MM = L L^T and Falkon's T = L^T).
