@@ -53,7 +53,20 @@ def _parser() -> argparse.ArgumentParser:
                    help="use a random subset of at most N points (said on stderr when it applies)")
     r.add_argument("--seed", type=int, default=0, help="seed for --max-points and solver centres (default 0)")
     r.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
+    r.add_argument("--weights", default=None, metavar="PATH",
+                   help="weights file (safetensors) for --method nkf; default: the weights shipped in the package")
     r.add_argument("--debug", action="store_true", help="show the full traceback on errors")
+    t = sub.add_parser(
+        "train",
+        help="train the learned kernel (method nkf) on the mesh corpus",
+        description="Train the feature network of the learned kernel on the train split of the mesh corpus.",
+    )
+    t.add_argument("--config", default="configs/nkf.toml", help="TOML training config (default configs/nkf.toml)")
+    t.add_argument("--out", default=None, metavar="DIR", help="run folder (default runs/CONFIG-NAME)")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    t.add_argument("--max-steps", type=int, default=None, metavar="N", help="stop after N more steps")
+    t.add_argument("--quiet", action="store_true", help="no progress bar; log lines on stderr instead")
+    t.add_argument("--debug", action="store_true", help="show the full traceback on errors")
     return ap
 
 
@@ -130,6 +143,10 @@ def main(argv=None) -> int:
     try:
         if args.command == "reconstruct":
             return cmd_reconstruct(args)
+        if args.command == "train":
+            from .training import main as train_main
+
+            return train_main(args)
         ap.error(f"unknown command {args.command}")  # pragma: no cover - argparse guards this
     except NKFInputError as exc:
         if args.debug:

@@ -153,7 +153,7 @@ class FeatureNet(nn.Module):
         self.out_channels = c.feature_dim + (1 if c.point_weights else 0)
         self.unet = UNet3D(w, self.out_channels, c.unet_width, c.unet_levels)
         # Small raw features at the start: tanh stays linear and phi stays close to zero.
-        nn.init.normal_(self.unet.head.weight, std=0.1)
+        nn.init.normal_(self.unet.head.weight, std=0.01)
         nn.init.zeros_(self.unet.head.bias)
         if c.point_weights:
             with torch.no_grad():

@@ -186,7 +186,7 @@ def example_loss(net, ex: Example, fit: FitSpec, device="cpu"):
     bce = F.binary_cross_entropy_with_logits(-fit.sharpness * f[:nq], occ)
     surf = f[nq:].abs().mean() if len(ex.surface) else torch.zeros((), dtype=torch.float64, device=device)
     loss = bce + fit.surface_weight * surf
-    return loss, {"bce": float(bce), "surface": float(surf)}
+    return loss, {"bce": float(bce.detach()), "surface": float(surf.detach())}
 
 
 def field_iou(f: np.ndarray, queries: np.ndarray, occupancy: np.ndarray) -> float:
@@ -361,7 +361,7 @@ class Trainer:
                 self.log(f"step {self.step}: skipped an example ({type(exc).__name__}: {exc})")
                 continue
             used += 1
-            parts["loss"] += float(loss)
+            parts["loss"] += float(loss.detach())
             parts["bce"] += p["bce"]
             parts["surface"] += p["surface"]
         ok = used > 0
@@ -528,12 +528,24 @@ def plot_curves(out: Path) -> Path:
 
 def main(args) -> int:
     """Entry point of ``nkf train`` (arguments parsed by :mod:`nkf_model.cli`)."""
-    cfg = load_config(args.config)
+    from .errors import NKFInputError
+
+    try:
+        cfg = load_config(args.config)
+    except FileNotFoundError:
+        raise NKFInputError(f"training config {args.config} does not exist") from None
+    except (OSError, ValueError, TypeError) as exc:  # tomllib.TOMLDecodeError is a ValueError
+        raise NKFInputError(f"training config {args.config}: {exc}") from None
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
-    if out.exists() and (out / "checkpoint.pt").exists() and not args.resume:
-        raise SystemExit(f"nkf train: {out} already holds a run; pass --resume to continue it or pick another --out")
+    if (out / "checkpoint.pt").exists() and not args.resume:
+        raise NKFInputError(f"{out} already holds a run; pass --resume to continue it, or choose another --out")
+    if args.resume and not (out / "checkpoint.pt").exists():
+        raise NKFInputError(f"--resume: {out} holds no checkpoint.pt to resume from")
     tr = Trainer(cfg, out, progress=not args.quiet)
-    res = tr.run(resume=args.resume, max_steps=args.max_steps)
+    try:
+        res = tr.run(resume=args.resume, max_steps=args.max_steps)
+    except ValueError as exc:  # a checkpoint written with another config
+        raise NKFInputError(str(exc)) from None
     print(f"{out / 'nkf.safetensors'}: best held-out mean IoU {res['best']:.4f} after {res['step']} steps "
           f"({res['elapsed_s'] / 60:.1f} min)")
     return 0
