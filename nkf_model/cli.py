@@ -97,6 +97,10 @@ def cmd_reconstruct(args) -> int:
     if args.max_points is not None and args.max_points < 10:
         raise NKFInputError(f"--max-points must be at least 10, got {args.max_points}")
     out = check_output_path(args.output)
+    if args.method == "nkf":
+        from .weights import load_weights
+
+        load_weights(args.weights)  # a bad weights file fails before the input is read
     t0 = time.perf_counter()
     cloud = read_point_cloud(args.input)
     if cloud.normals is None:
@@ -118,7 +122,8 @@ def cmd_reconstruct(args) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             mesh = reconstruct(points, normals, method=args.method, lam=args.lam, resolution=args.resolution,
-                               device=args.device, progress=progress, cancel=cancel, seed=args.seed)
+                               device=args.device, progress=progress, cancel=cancel, seed=args.seed,
+                               weights=args.weights)
     finally:
         close()
     for w in caught:

@@ -68,14 +68,19 @@ class NumbaEngine(Engine):
 
     def _acute(self, *unit_vectors) -> bool:
         """True when every 4-D unit vector is [x : 1] / |[x : 1]| with |x| < 1 (all pairs within
-        90 degrees), so the faster angle term applies."""
+        90 degrees), so the faster angle term applies. The same bound on the last coordinate holds
+        for the 12-D vectors [x : phi : 1] / |[x : phi : 1]| of the learned kernel (d = 8): two unit
+        vectors whose last coordinates are both at least 1/sqrt(2) are at most 90 degrees apart."""
         lim = self._nk.ACUTE_MIN_LAST
-        return all(u.shape[1] == 4 and (len(u) == 0 or float(u[:, 3].min()) >= lim) for u in unit_vectors)
+        return all(
+            u.shape[1] in (4, 12) and (len(u) == 0 or float(u[:, -1].min()) >= lim) for u in unit_vectors
+        )
 
     def kernel_sum(self, qu, qr, cu, cr, w, check: Check = None):
         beta = np.ascontiguousarray(cr * w)
         out = np.empty(len(qu))
         four = cu.shape[1] == 4
+        twelve = cu.shape[1] == 12
         acute = self._acute(qu, cu)
         if four:
             cols = [np.ascontiguousarray(cu[:, k]) for k in range(4)]
@@ -86,7 +91,12 @@ class NumbaEngine(Engine):
                 check()
             q = np.ascontiguousarray(qu[s:e])
             with self._lock:
-                out[s:e] = self._nk.gsum4(q, *cols, beta, acute) if four else self._nk.gsum(q, ct, beta)
+                if four:
+                    out[s:e] = self._nk.gsum4(q, *cols, beta, acute)
+                elif twelve:
+                    out[s:e] = self._nk.gsum12(q, ct, beta, acute)
+                else:
+                    out[s:e] = self._nk.gsum(q, ct, beta)
         return out * qr / math.pi
 
     def kernel_matrix(self, qu, qr, cu, cr, check: Check = None):

@@ -62,7 +62,7 @@ class FeatureConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "FeatureConfig":
+    def from_dict(cls, d: dict) -> FeatureConfig:
         names = {f.name for f in fields(cls)}
         unknown = set(d) - names
         if unknown:

@@ -15,16 +15,57 @@ and returns what :func:`nkf_model.solve.solve_dense` / :func:`~nkf_model.solve.s
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
+from .evaluate import GRID_HALF
 from .features import FeatureNet, sample_grid_numpy
 from .kernel import homogeneous
 
 
 def _softplus(x):
     return np.logaddexp(0.0, x)
+
+
+@nb.njit(inline="always")
+def _cell(v, half, scale, m):  # pragma: no cover - compiled
+    s = (v + half) * scale - 0.5
+    s = min(max(s, 0.0), m - 1.0)
+    k = min(int(math.floor(s)), m - 2) if m > 1 else 0
+    return k, s - k
+
+
+@nb.njit(parallel=True, nogil=True, cache=True)
+def _gated_trilinear(grid, gate, x, half):  # pragma: no cover - compiled
+    """``gate * tanh(trilinear(grid, x))``: grid (M, M, M, d), gate (d,), x (N, 3) -> (N, d).
+
+    The same interpolation as :func:`nkf_model.features.sample_grid_numpy` (values at cell
+    centres, border values extended outside), fused with the gate.
+    """
+    m = grid.shape[0]
+    d = grid.shape[3]
+    n = x.shape[0]
+    out = np.zeros((n, d))
+    scale = m / (2.0 * half)
+    for i in nb.prange(n):
+        i0, f0 = _cell(x[i, 0], half, scale, m)
+        i1, f1 = _cell(x[i, 1], half, scale, m)
+        i2, f2 = _cell(x[i, 2], half, scale, m)
+        for a in range(2):
+            wa = f0 if a else 1.0 - f0
+            for b in range(2):
+                wb = wa * (f1 if b else 1.0 - f1)
+                for cc in range(2):
+                    w = wb * (f2 if cc else 1.0 - f2)
+                    row = grid[i0 + a, i1 + b, i2 + cc]
+                    for c in range(d):
+                        out[i, c] += w * row[c]
+        for c in range(d):
+            out[i, c] = gate[c] * math.tanh(out[i, c])
+    return out
 
 
 @dataclass
@@ -80,7 +121,7 @@ class LearnedKernel:
         gate = self.gate
 
         def phi(x):
-            return gate * np.tanh(sample_grid_numpy(feat, x))
+            return _gated_trilinear(feat, gate, np.ascontiguousarray(x, dtype=np.float64), GRID_HALF)
 
         a = homogeneous(xa, phi(xa))
         w = None

@@ -16,7 +16,7 @@ from threadpoolctl import threadpool_limits
 
 from .augment import augment, default_eps
 from .engines import select_engine
-from .errors import InvalidParameterError, MethodUnavailableError, NoSurfaceError
+from .errors import InvalidParameterError, NoSurfaceError
 from .evaluate import MAX_RESOLUTION, MIN_RESOLUTION, evaluate_sparse
 from .inputs import clean_points
 from .kernel import homogeneous
@@ -25,9 +25,11 @@ from .normalise import Normalisation
 from .progress import Tracker
 from .sampling import farthest_point_sample
 from .solve import KernelFunction, solve_dense, solve_falkon
+from .weights import has_default_weights, load_weights
 
 METHODS = ("splines", "nkf")
-DEFAULT_METHOD = "splines"
+# The learned kernel is the default when the package ships its weights; "splines" needs none.
+DEFAULT_METHOD = "nkf" if has_default_weights() else "splines"
 DEFAULT_LAM = 1e-10
 DEFAULT_RESOLUTION = 128
 # Up to this many constraints (2 per point) the solve is exact; beyond it, Falkon with this many
@@ -81,6 +83,7 @@ def reconstruct(
     eps: float | None = None,
     max_centres: int = DEFAULT_CENTRES,
     seed: int = 0,
+    weights=None,
 ) -> Mesh:
     """Reconstruct a watertight surface from oriented points.
 
@@ -92,7 +95,8 @@ def reconstruct(
         Outward normals, one per point; any positive length.
     method : {"splines", "nkf"}
         ``"splines"``: the data-free Neural Splines kernel, no weights needed.
-        ``"nkf"``: the learned Neural Kernel Field kernel.
+        ``"nkf"``: the learned Neural Kernel Field kernel (needs weights; the default when the
+        package ships them, see :func:`nkf_model.weights.has_default_weights`).
     lam : float
         Regularisation per constraint, >= 0 (the paper's lambda; the solve uses
         ``(G + 2N lam I) alpha = y``). Larger values smooth the surface; 1e-12 to 1e-8 fit the points.
@@ -103,7 +107,7 @@ def reconstruct(
         ``"auto"`` uses a CUDA GPU when PyTorch sees one, else the CPU.
     progress : callable, optional
         ``progress(fraction, stage)``: ``fraction`` in [0, 1], ``stage`` one of ``"normalise"``,
-        ``"augment"``, ``"solve"``, ``"evaluate"``, ``"mesh"``, then ``"done"``.
+        ``"augment"``, ``"features"`` (nkf only), ``"solve"``, ``"evaluate"``, ``"mesh"``, then ``"done"``.
     cancel : threading.Event, optional
         When set, the work stops within 0.5 s by raising :class:`~nkf_model.errors.Cancelled`.
     eps : float, optional
@@ -114,6 +118,9 @@ def reconstruct(
         centres.
     seed : int
         Seed for the choice of Nystrom centres.
+    weights : str or os.PathLike, optional
+        Weights file (safetensors) for ``method="nkf"``; default: the weights shipped in the
+        package. Ignored by ``method="splines"``.
 
     Returns
     -------
@@ -124,24 +131,24 @@ def reconstruct(
     Raises
     ------
     nkf_model.errors.NKFInputError
-        A ``ValueError`` subclass for every bad input or setting (see :mod:`nkf_model.errors`).
+        A ``ValueError`` subclass for every bad input or setting (see :mod:`nkf_model.errors`);
+        :class:`~nkf_model.errors.WeightsError` for a missing, corrupt or mismatched weights file.
     nkf_model.errors.Cancelled
         ``cancel`` was set.
     """
     check_settings(method, lam, resolution, device, eps, max_centres)
+    model = load_weights(weights) if method == "nkf" else None
     with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
-        return _reconstruct(points, normals, method, lam, resolution, device, progress, cancel, eps, max_centres, seed)
-
-
-def _reconstruct(points, normals, method, lam, resolution, device, progress, cancel, eps, max_centres, seed):
-    if method == "nkf":
-        raise MethodUnavailableError(
-            "method 'nkf' needs trained weights, which this version does not ship yet; "
-            "use method='splines'"
+        return _reconstruct(
+            points, normals, method, lam, resolution, device, progress, cancel, eps, max_centres, seed, model
         )
+
+
+def _reconstruct(points, normals, method, lam, resolution, device, progress, cancel, eps, max_centres, seed, model):
     t_start = time.perf_counter()
     engine = select_engine(device)
-    track = Tracker(progress, cancel)
+    stages = ("normalise", "augment") + (("features",) if model is not None else ()) + ("solve", "evaluate", "mesh")
+    track = Tracker(progress, cancel, stages=stages)
     track.begin("normalise")
     clean = clean_points(points, normals)
     for line in clean.warnings():
@@ -153,7 +160,13 @@ def _reconstruct(points, normals, method, lam, resolution, device, progress, can
     track.begin("augment")
     eps_used = float(eps) if eps is not None else default_eps(n)
     xa, y = augment(x, clean.normals, eps_used)
-    a = homogeneous(xa)
+    phi = None
+    if model is None:
+        a = homogeneous(xa)
+    else:
+        track.begin("features")
+        prep = model.prepare(xa, y)
+        a, y, phi = prep.a, prep.y, prep.phi
 
     track.begin("solve")
     if len(a) <= max_centres:
@@ -164,7 +177,7 @@ def _reconstruct(points, normals, method, lam, resolution, device, progress, can
         idx = np.concatenate([half, half + n])
         alpha, info = solve_falkon(a, y, idx, float(lam), engine, tol=FALKON_TOL, check=track.check, step=track.step)
         centres = a[idx]
-    fn = KernelFunction(centres, alpha, engine)
+    fn = KernelFunction(centres, alpha, engine, features=phi)
 
     track.begin("evaluate")
     field_ = evaluate_sparse(
@@ -182,6 +195,8 @@ def _reconstruct(points, normals, method, lam, resolution, device, progress, can
     local = unit_v * norm.scale
     track.finish()
     stats = {
+        "method": method,
+        "weights": str(model.meta.get("path", "")) if model is not None else None,
         "points_in": int(np.asarray(points).shape[0]),
         "points_used": n,
         "dropped": dict(clean.dropped),

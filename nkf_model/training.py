@@ -401,7 +401,7 @@ class Trainer:
         t = self.cfg.train
         resumed = resume and self.load_checkpoint()
         self.log(
-            ("resumed at step %d" % self.step if resumed else "new run")
+            (f"resumed at step {self.step}" if resumed else "new run")
             + f"; device {self.device}, {platform.processor() or platform.machine()}, "
             f"{os.cpu_count()} cores, torch threads {t.threads}"
         )
@@ -469,7 +469,8 @@ class Trainer:
             plot_curves(self.out)
         except ImportError:
             self.log("matplotlib is not installed (the 'train' extra); no curves.png")
-        self.log(f"stopped at step {self.step} after {self.elapsed / 60:.1f} min of training; best mean IoU {self.best:.4f}")
+        self.log(f"stopped at step {self.step} after {self.elapsed / 60:.1f} min of training; "
+                 f"best mean IoU {self.best:.4f}")
         return {"step": self.step, "best": self.best, "elapsed_s": self.elapsed}
 
     def summary(self, val: dict, baseline: dict) -> dict:

@@ -152,6 +152,7 @@ def load_weights(path=None):
     net.load_state_dict(tensors, strict=True)
     meta = dict(meta)
     meta["lam_value"] = float(meta["lam"])
+    meta["path"] = str(path)
     model = LearnedKernel(net, meta)
     if key is not None:
         _CACHE[key] = model
