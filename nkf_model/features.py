@@ -176,13 +176,16 @@ class FeatureNet(nn.Module):
             Raw U-Net outputs: ``d`` feature channels, then the weight channel if any; indexed
             ``[c, i, j, k]`` for the cell ``(i, j, k)`` along (x, y, z).
         """
+        return self.unet(self.cell_grid(x, labels)[None])[0]
+
+    def cell_grid(self, x: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+        """PointNet features of the cells, (pointnet_width, M, M, M); zero in empty cells."""
         m = self.config.grid
         flat, local = cell_coordinates(x, m)
         h = self.pointnet(torch.cat([local, labels[:, None]], dim=1))
         cells = torch.zeros(m**3, h.shape[1], dtype=h.dtype, device=h.device)
         cells = cells.scatter_reduce(0, flat[:, None].expand_as(h), h, reduce="amax", include_self=False)
-        grid = cells.T.reshape(1, h.shape[1], m, m, m)
-        return self.unet(grid)[0]
+        return cells.T.reshape(h.shape[1], m, m, m)
 
     def point_features(self, grid: torch.Tensor, x: torch.Tensor):
         """``phi`` (N, d) and weights (N,) or None at unit-box points ``x`` (N, 3), float32 tensors."""

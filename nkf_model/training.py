@@ -218,6 +218,12 @@ class Trainer:
         self.progress = progress
         self.log_to_stderr = log_to_stderr
         torch.set_num_threads(max(1, cfg.train.threads))
+        try:
+            import numba
+
+            numba.set_num_threads(max(1, min(cfg.train.threads, numba.config.NUMBA_NUM_THREADS)))
+        except ImportError:  # pragma: no cover - numba is a dependency
+            pass
         dev = cfg.train.device
         if dev == "auto":
             dev = "cuda" if torch.cuda.is_available() else "cpu"

@@ -47,7 +47,12 @@ def _cache_path(cache_dir: Path, entry: corpus.CorpusMesh) -> Path:
 def build_samples(entry: corpus.CorpusMesh, spec: CacheSpec) -> dict:
     """Compute the cached samples of one corpus mesh (see the module docstring)."""
     v, f = corpus.load(entry)
-    rng = np.random.default_rng(corpus.stable_seed("train-cache", entry.name))
+    return samples_from_mesh(v, f, spec, corpus.stable_seed("train-cache", entry.name))
+
+
+def samples_from_mesh(v, f, spec: CacheSpec, seed: int) -> dict:
+    """Samples of a triangle mesh (vertices (V, 3), faces (F, 3)) in the corpus's unit box."""
+    rng = np.random.default_rng(seed)
     sp, sn = metrics.sample_surface(v, f, spec.n_surface, rng)
     vol = rng.uniform(-PAD, PAD, size=(spec.n_volume, 3))
     src, _ = metrics.sample_surface(v, f, spec.n_near, rng)
