@@ -107,10 +107,17 @@ class LearnedKernel:
         """Raw feature grid (M, M, M, C) float64 for constraints ``xa`` (2N, 3) and labels (2N,)."""
         import torch
 
-        with torch.no_grad():
-            g = self.net.grid_features(
-                torch.as_tensor(xa, dtype=torch.float32), torch.as_tensor(y, dtype=torch.float32)
-            )
+        # One intra-op thread: the network is small (about 0.1 s), and on a busy machine a second
+        # OpenMP thread made it several times slower, not faster.
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            with torch.no_grad():
+                g = self.net.grid_features(
+                    torch.as_tensor(xa, dtype=torch.float32), torch.as_tensor(y, dtype=torch.float32)
+                )
+        finally:
+            torch.set_num_threads(threads)
         return np.ascontiguousarray(g.permute(1, 2, 3, 0).double().numpy())
 
     def prepare(self, xa: np.ndarray, y: np.ndarray) -> Prepared:

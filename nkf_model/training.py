@@ -142,10 +142,12 @@ def load_config(path) -> TrainConfig:
 # The differentiable forward pass of one example
 
 
-def example_field(net, ex: Example, lam: float, queries: np.ndarray, *, use_features: bool = True, device="cpu"):
+def example_field(net, ex: Example, lam: float, queries: np.ndarray, *, use_features: bool = True, device="cpu",
+                  use_weights: bool = True):
     """Field values (Q,) float64 tensor at ``queries`` (Q, 3) after fitting the example's input.
 
     With ``use_features=False`` the features are zero and the weights one: the Neural Splines fit.
+    With ``use_weights=False`` the learned features are used but every per-point weight is one.
     """
     import torch
 
@@ -164,7 +166,7 @@ def example_field(net, ex: Example, lam: float, queries: np.ndarray, *, use_feat
         phi_q, _ = net.point_features(grid, q_t.float())
         a = torch.cat([xa_t, phi_a.double(), one_a], dim=1)
         q = torch.cat([q_t, phi_q.double(), one_q], dim=1)
-        if w is not None:
+        if w is not None and use_weights:
             w = w.double()
             a = a * w[:, None]
             y_t = y_t * w

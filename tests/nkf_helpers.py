@@ -37,7 +37,7 @@ def icosphere(subdivisions: int = 2, radius: float = 0.45):
         cache = {}
         nf = []
 
-        def mid(a, b):
+        def mid(a, b, cache=cache):
             key = (min(a, b), max(a, b))
             if key not in cache:
                 m = v[a] + v[b]

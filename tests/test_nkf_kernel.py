@@ -28,7 +28,8 @@ def test_zero_features_give_the_neural_spline_kernel():
     np.testing.assert_allclose(zero, plain, rtol=1e-14, atol=1e-14)
     # ... and through the fused 12-D loops of the engine, against its 4-D loops.
     e = cpu_engine()
-    k12 = e.kernel_matrix(*split_unit(homogeneous(x, np.zeros((40, 8)))), *split_unit(homogeneous(z, np.zeros((30, 8)))))
+    zx, zz = homogeneous(x, np.zeros((40, 8))), homogeneous(z, np.zeros((30, 8)))
+    k12 = e.kernel_matrix(*split_unit(zx), *split_unit(zz))
     k4 = e.kernel_matrix(*split_unit(homogeneous(x)), *split_unit(homogeneous(z)))
     np.testing.assert_allclose(k12, k4, rtol=1e-13, atol=1e-13)
 
