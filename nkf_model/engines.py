@@ -68,13 +68,22 @@ class NumbaEngine(Engine):
 
     def _acute(self, *unit_vectors) -> bool:
         """True when every 4-D unit vector is [x : 1] / |[x : 1]| with |x| < 1 (all pairs within
-        90 degrees), so the faster angle term applies. The same bound on the last coordinate holds
-        for the 12-D vectors [x : phi : 1] / |[x : phi : 1]| of the learned kernel (d = 8): two unit
-        vectors whose last coordinates are both at least 1/sqrt(2) are at most 90 degrees apart."""
+        90 degrees), so the faster angle term applies.
+
+        For the 12-D vectors [x : phi : 1] of the learned kernel (d = 8) the same argument is made
+        with a common direction ``e`` (the mean of the vectors) instead of the last axis: unit
+        vectors that are all within 45 degrees of ``e`` (``u . e >= 1/sqrt(2)``) are pairwise
+        within 90 degrees."""
         lim = self._nk.ACUTE_MIN_LAST
-        return all(
-            u.shape[1] in (4, 12) and (len(u) == 0 or float(u[:, -1].min()) >= lim) for u in unit_vectors
-        )
+        dims = {u.shape[1] for u in unit_vectors}
+        if dims == {12}:
+            e = sum(u.sum(axis=0) for u in unit_vectors)
+            norm = float(np.linalg.norm(e))
+            if norm == 0.0:
+                return False
+            e = e / norm
+            return all(len(u) == 0 or float((u @ e).min()) >= lim for u in unit_vectors)
+        return all(u.shape[1] == 4 and (len(u) == 0 or float(u[:, 3].min()) >= lim) for u in unit_vectors)
 
     def kernel_sum(self, qu, qr, cu, cr, w, check: Check = None):
         beta = np.ascontiguousarray(cr * w)

@@ -48,6 +48,13 @@ class FeatureConfig:
         Predict per-constraint weights (one more output channel).
     gate_init : float
         Initial value of the per-channel gate on ``tanh(raw)``.
+    const_channel : bool
+        Make the first feature a learned constant ``c`` (the same for every point). With it,
+        ``[x : c : phi' : 1]`` has the inner products of ``[x : phi' : sqrt(1 + c^2)]``: a learned
+        global scale of the kernel (``x`` scaled by ``1 / sqrt(1 + c^2)``), which the per-point
+        features then modulate.
+    const_init : float
+        Initial ``log(c^2)``.
     """
 
     grid: int = 16
@@ -57,6 +64,8 @@ class FeatureConfig:
     feature_dim: int = 8
     point_weights: bool = False
     gate_init: float = 0.1
+    const_channel: bool = False
+    const_init: float = -3.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -150,15 +159,20 @@ class FeatureNet(nn.Module):
         self.pointnet = nn.Sequential(
             nn.Linear(4, w), nn.ReLU(inplace=True), nn.Linear(w, w), nn.ReLU(inplace=True), nn.Linear(w, w)
         )
-        self.out_channels = c.feature_dim + (1 if c.point_weights else 0)
+        self.learned_dim = c.feature_dim - (1 if c.const_channel else 0)
+        if self.learned_dim < 0:
+            raise ValueError("feature_dim must be at least 1 with const_channel")
+        self.out_channels = self.learned_dim + (1 if c.point_weights else 0)
         self.unet = UNet3D(w, self.out_channels, c.unet_width, c.unet_levels)
         # Small raw features at the start: tanh stays linear and phi stays close to zero.
         nn.init.normal_(self.unet.head.weight, std=0.01)
         nn.init.zeros_(self.unet.head.bias)
         if c.point_weights:
             with torch.no_grad():
-                self.unet.head.bias[c.feature_dim] = -4.0  # w = exp(-softplus(-4)) = 0.982
-        self.gate = nn.Parameter(torch.full((c.feature_dim,), float(c.gate_init)))
+                self.unet.head.bias[self.learned_dim] = -4.0  # w = exp(-softplus(-4)) = 0.982
+        self.gate = nn.Parameter(torch.full((self.learned_dim,), float(c.gate_init)))
+        if c.const_channel:
+            self.log_c2 = nn.Parameter(torch.tensor(float(c.const_init)))
 
     def grid_features(self, x: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
         """Feature grid of one shape.
@@ -173,7 +187,8 @@ class FeatureNet(nn.Module):
         Returns
         -------
         (C, M, M, M) float32 tensor
-            Raw U-Net outputs: ``d`` feature channels, then the weight channel if any; indexed
+            Raw U-Net outputs: the learned feature channels (``d``, or ``d - 1`` with
+        ``const_channel``), then the weight channel if any; indexed
             ``[c, i, j, k]`` for the cell ``(i, j, k)`` along (x, y, z).
         """
         return self.unet(self.cell_grid(x, labels)[None])[0]
@@ -188,12 +203,21 @@ class FeatureNet(nn.Module):
         return cells.T.reshape(h.shape[1], m, m, m)
 
     def point_features(self, grid: torch.Tensor, x: torch.Tensor):
-        """``phi`` (N, d) and weights (N,) or None at unit-box points ``x`` (N, 3), float32 tensors."""
+        """``phi`` (N, d) and weights (N,) or None at unit-box points ``x`` (N, 3), float32 tensors.
+
+        With ``const_channel`` the first column of ``phi`` is the learned constant ``c``."""
         raw = sample_grid_torch(grid, x)
-        d = self.config.feature_dim
+        d = self.learned_dim
         phi = self.gate * torch.tanh(raw[:, :d])
+        if self.config.const_channel:
+            c = torch.exp(0.5 * self.log_c2).to(phi.dtype)
+            phi = torch.cat([c.expand(len(x), 1), phi], dim=1)
         w = torch.exp(-F.softplus(raw[:, d])) if self.config.point_weights else None
         return phi, w
+
+    def constant_feature(self) -> float:
+        """The learned constant feature ``c`` (0 without ``const_channel``)."""
+        return float(torch.exp(0.5 * self.log_c2.detach())) if self.config.const_channel else 0.0
 
 
 def sample_grid_torch(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

@@ -123,12 +123,19 @@ class LearnedKernel:
     def prepare(self, xa: np.ndarray, y: np.ndarray) -> Prepared:
         """Features, weights and homogeneous constraints for augmented points (see the module)."""
         grid = self.feature_grid(xa, y)
-        d = self.feature_dim
+        d = self.net.learned_dim
         feat = np.ascontiguousarray(grid[..., :d])
         gate = self.gate
+        const = self.net.constant_feature() if self.config.const_channel else None
 
         def phi(x):
-            return _gated_trilinear(feat, gate, np.ascontiguousarray(x, dtype=np.float64), GRID_HALF)
+            f = _gated_trilinear(feat, gate, np.ascontiguousarray(x, dtype=np.float64), GRID_HALF)
+            if const is None:
+                return f
+            out = np.empty((len(f), d + 1))
+            out[:, 0] = const
+            out[:, 1:] = f
+            return out
 
         a = homogeneous(xa, phi(xa))
         w = None

@@ -74,6 +74,7 @@ class TrainSpec:
     warmup: int = 200
     final_lr_fraction: float = 0.05
     grad_clip: float = 1.0
+    const_lr_scale: float = 20.0  # learning-rate multiplier of the constant feature's log(c^2)
     val_every: int = 500
     checkpoint_every: int = 250
     threads: int = 2
@@ -232,7 +233,12 @@ class Trainer:
         self.device = dev
         torch.manual_seed(cfg.train.seed)
         self.net = FeatureNet(cfg.model).to(dev)
-        self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.train.lr)
+        const = [p for n, p in self.net.named_parameters() if n == "log_c2"]
+        rest = [p for n, p in self.net.named_parameters() if n != "log_c2"]
+        groups = [{"params": rest, "scale": 1.0}]
+        if const:
+            groups.append({"params": const, "scale": cfg.train.const_lr_scale})
+        self.opt = torch.optim.Adam(groups, lr=cfg.train.lr)
         self.step = 0
         self.best = -1.0
         self.elapsed = 0.0  # seconds of training over all sessions of this run
@@ -350,7 +356,7 @@ class Trainer:
         rng = np.random.default_rng([self.cfg.train.seed, self.step])
         lr = self.lr_at(self.step)
         for gparam in self.opt.param_groups:
-            gparam["lr"] = lr
+            gparam["lr"] = lr * gparam.get("scale", 1.0)
         self.net.train()
         self.opt.zero_grad(set_to_none=True)
         b = self.cfg.train.batch
@@ -448,7 +454,8 @@ class Trainer:
                 bar.set_postfix(loss=f"{np.mean(window):.4f}", val=last_val or "-")
                 if self.step % 50 == 0:
                     self.log(f"step {self.step}: loss {np.mean(window):.4f} (mean of last {len(window)}), "
-                             f"lr {r['lr']:.3g}, {self.elapsed / 60:.1f} min")
+                             f"lr {r['lr']:.3g}, constant feature {self.net.constant_feature():.3f}, "
+                             f"{self.elapsed / 60:.1f} min")
                 if self.step % t.val_every == 0 or last:
                     tv = time.perf_counter()
                     val = self.validate()
