@@ -35,8 +35,9 @@ DEFAULT_RESOLUTION = 128
 # Up to this many constraints (2 per point) the solve is exact; beyond it, Falkon with this many
 # Nystrom centres. See docs/benchmarks.md for the trade-off of this number against IoU and time.
 DEFAULT_CENTRES = 6000
-# Relative residual at which Falkon's conjugate gradient stops.
-FALKON_TOL = 1e-9
+# Relative residual at which Falkon's conjugate gradient stops: 1e-6 gave the same IoU and Chamfer as
+# 1e-9 on 12 validation meshes at 10,000 points, in 17 iterations instead of 25.
+FALKON_TOL = 1e-6
 # Threads for dense linear algebra (OpenBLAS). One: on a busy 2-core machine (Blender's UI, another
 # job) two OpenBLAS threads ran a 2,000 x 2,000 Cholesky 8x slower than one, and a 6,000 one 2x slower.
 BLAS_THREADS = 1

@@ -1,0 +1,50 @@
+"""NKF for Blender: reconstruct a surface mesh from the active point cloud.
+
+Operator ``bpy.ops.object.nkf_reconstruct`` (modal with progress in the UI, synchronous in
+headless Blender), panel View3D > Sidebar > NKF, add-on preferences that install PyTorch and the
+other compiled dependencies, and a Python function, :func:`api.reconstruct_object`.
+
+The reconstruction itself is the ``nkf_model`` package, bundled as a wheel. Module map:
+
+* ``deps``, ``installer``, ``methods``, ``job``, ``errors``: no ``bpy``; worker-thread logic,
+  dependency checks and the pip installer;
+* ``source`` (read points), ``result`` (build the mesh), ``runner`` (jobs on the main thread),
+  ``settings``, ``ops``, ``panel``, ``prefs``, ``api``: the Blender side.
+"""
+
+from __future__ import annotations
+
+import bpy
+
+from . import deps, methods, ops, panel, prefs, runner, settings
+
+_CLASSES = (settings.NKF_PG_settings, *prefs.CLASSES, *ops.CLASSES, *panel.CLASSES)
+
+
+def register() -> None:
+    # Find packages installed by "Install Dependencies" or in the user's PyTorch folder first:
+    # the method's default (NKF when nkf_model can run it) depends on them.
+    prefs_cls = prefs.NKFPreferences
+    bpy.utils.register_class(prefs_cls)
+    p = prefs.get_prefs()
+    if p is not None and p.torch_path:
+        prefs._applied_torch_path[0] = bpy.path.abspath(p.torch_path)
+    prefs.apply_paths(p)
+    default = methods.default_method() if deps.status().ready else "SPLINES"
+    settings.prepare_classes(default, settings.NKF_PG_settings, ops.OBJECT_OT_nkf_reconstruct)
+    for cls in _CLASSES:
+        if cls is not prefs_cls:
+            bpy.utils.register_class(cls)
+    bpy.types.Scene.nkf_settings = bpy.props.PointerProperty(type=settings.NKF_PG_settings)
+
+
+def unregister() -> None:
+    stuck = runner.stop_all()
+    if stuck:
+        print(f"NKF: worker threads did not stop for {', '.join(stuck)}")
+    prefs.stop_install()
+    del bpy.types.Scene.nkf_settings
+    for cls in reversed(_CLASSES):
+        bpy.utils.unregister_class(cls)
+    deps.remove_added_paths()
+    prefs._applied_torch_path[0] = ""

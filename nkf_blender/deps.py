@@ -1,0 +1,144 @@
+"""Which Python packages the reconstruction needs, and whether Blender's Python can import them.
+
+No ``bpy`` here. The check uses :func:`importlib.util.find_spec`, which finds a package without
+importing it, so it is cheap enough for a panel; the result is cached until :func:`refresh`.
+
+* Required for any reconstruction: ``nkf_model`` (bundled with the extension), ``scipy``,
+  ``skimage`` (scikit-image), and a kernel engine: ``numba`` (fast on the CPU) or ``torch``.
+* ``torch`` (PyTorch) is needed for the GPU and for the learned NKF kernel.
+
+Extra folders (the extension's own ``site-packages`` and a folder the user points to) are
+*appended* to ``sys.path``, so Blender's bundled NumPy always comes first.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+# import name -> name on PyPI (what the user would install).
+REQUIRED = {"nkf_model": "nkf-model", "scipy": "scipy", "skimage": "scikit-image"}
+ENGINES = {"numba": "numba", "torch": "torch"}
+OPTIONAL = {"torch": "torch", "safetensors": "safetensors"}
+
+
+def _importable(name: str) -> bool:
+    try:
+        return importlib.util.find_spec(name) is not None
+    except (ImportError, ValueError):  # ValueError: sys.modules[name] is None (import blocked)
+        return False
+
+
+@dataclass(frozen=True)
+class DepStatus:
+    """What is importable now.
+
+    Attributes
+    ----------
+    found : dict[str, bool]
+        Import name -> importable, for every package in REQUIRED, ENGINES and OPTIONAL.
+    """
+
+    found: dict = field(default_factory=dict)
+
+    @property
+    def missing_required(self) -> list[str]:
+        """PyPI names of the packages without which nothing can run (empty when ready)."""
+        out = [pypi for mod, pypi in REQUIRED.items() if not self.found.get(mod)]
+        if not any(self.found.get(mod) for mod in ENGINES):
+            out.append("numba or torch")
+        return out
+
+    @property
+    def ready(self) -> bool:
+        """True when a reconstruction can run (on the CPU, with Neural Splines at least)."""
+        return not self.missing_required
+
+    @property
+    def torch(self) -> bool:
+        return bool(self.found.get("torch"))
+
+    def message(self) -> str:
+        """One line for the user, empty when everything (PyTorch included) is there."""
+        if not self.ready:
+            return (
+                "Missing Python packages: " + ", ".join(self.missing_required)
+                + ". Install them in the add-on preferences (Install Dependencies)"
+            )
+        if not self.torch:
+            return (
+                "PyTorch is not installed: the GPU and the NKF method need it. "
+                "Install it in the add-on preferences"
+            )
+        return ""
+
+
+_status: DepStatus | None = None
+
+
+def check() -> DepStatus:
+    """Look for every package now (cheap: nothing is imported) and cache the answer."""
+    global _status
+    importlib.invalidate_caches()
+    names = {**REQUIRED, **ENGINES, **OPTIONAL}
+    _status = DepStatus(found={mod: _importable(mod) for mod in names})
+    return _status
+
+
+def status() -> DepStatus:
+    """The cached status (checked on first use)."""
+    return _status if _status is not None else check()
+
+
+def refresh() -> DepStatus:
+    """Forget the cached status and check again (after an install or a path change)."""
+    return check()
+
+
+# Folders this module appended to sys.path, so they can be taken off again.
+_added: list[str] = []
+
+
+def add_path(path) -> bool:
+    """Append ``path`` to ``sys.path`` (after Blender's own folders) if it is an existing folder.
+
+    Returns True when the folder is on ``sys.path`` afterwards.
+    """
+    if not path:
+        return False
+    p = str(Path(path).expanduser().resolve())
+    if not Path(p).is_dir():
+        return False
+    if p not in sys.path:
+        sys.path.append(p)
+        _added.append(p)
+        importlib.invalidate_caches()
+    return True
+
+
+def remove_path(path) -> None:
+    """Take ``path`` off ``sys.path`` if :func:`add_path` put it there."""
+    if not path:
+        return
+    p = str(Path(path).expanduser().resolve())
+    if p in _added:
+        _added.remove(p)
+        while p in sys.path:
+            sys.path.remove(p)
+        importlib.invalidate_caches()
+
+
+def remove_added_paths() -> None:
+    """Take every folder :func:`add_path` appended back off ``sys.path``."""
+    while _added:
+        p = _added.pop()
+        while p in sys.path:
+            sys.path.remove(p)
+    importlib.invalidate_caches()
+
+
+def added_paths() -> list[str]:
+    return list(_added)

@@ -1,0 +1,82 @@
+"""Which reconstruction methods ``nkf_model`` can run here, asked of ``nkf_model`` itself.
+
+No ``bpy`` here. The learned NKF kernel may be missing (no weights, no PyTorch); Neural Splines
+needs nothing beyond the required packages. The answer decides the operator's default method and
+the panel's message, and is cached until :func:`refresh`.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+# Blender enum identifier -> nkf_model method name.
+METHOD_IDS = {"NKF": "nkf", "SPLINES": "splines"}
+DEVICE_IDS = {"AUTO": "auto", "CPU": "cpu", "GPU": "cuda"}
+
+_cache: dict[str, tuple[bool, str]] = {}
+
+
+def _probe_points():
+    """Twenty-six points on a unit sphere with outward normals (enough for any input check)."""
+    d = np.array(
+        [(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) != (0, 0, 0)],
+        dtype=np.float64,
+    )
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d, d.copy()
+
+
+def method_status(method: str) -> tuple[bool, str]:
+    """``(available, reason)`` for an nkf_model method name (``"nkf"`` or ``"splines"``).
+
+    Uses ``nkf_model.method_available(method)`` when the package has it. Otherwise it asks
+    :func:`nkf_model.reconstruct` directly with a cancel event that is already set: an unavailable
+    method raises :class:`~nkf_model.errors.MethodUnavailableError` with its reason before any work,
+    and an available one stops at its first progress check with
+    :class:`~nkf_model.errors.Cancelled`, so the probe costs milliseconds.
+    """
+    if method in _cache:
+        return _cache[method]
+    try:
+        import nkf_model
+    except ImportError as exc:
+        return False, f"nkf_model cannot be imported: {exc}"
+    ask = getattr(nkf_model, "method_available", None)
+    if callable(ask):
+        try:
+            res = ask(method)
+            ok, why = (res if isinstance(res, tuple) else (bool(res), ""))
+        except Exception as exc:  # the package's own check failed: say so, do not crash the UI
+            ok, why = False, str(exc)
+    else:
+        stop = threading.Event()
+        stop.set()
+        pts, nrm = _probe_points()
+        try:
+            nkf_model.reconstruct(pts, nrm, method=method, resolution=16, device="cpu", cancel=stop)
+            ok, why = True, ""
+        except nkf_model.Cancelled:
+            ok, why = True, ""
+        except nkf_model.MethodUnavailableError as exc:
+            ok, why = False, str(exc)
+        except Exception as exc:
+            ok, why = False, f"{type(exc).__name__}: {exc}"
+    _cache[method] = (bool(ok), str(why))
+    return _cache[method]
+
+
+def nkf_available() -> tuple[bool, str]:
+    """``(available, reason)`` for the learned NKF kernel."""
+    return method_status("nkf")
+
+
+def default_method() -> str:
+    """The Blender enum id of the default method: ``"NKF"`` when it can run here, else ``"SPLINES"``."""
+    return "NKF" if nkf_available()[0] else "SPLINES"
+
+
+def refresh() -> None:
+    """Forget the cached answers (after installing dependencies)."""
+    _cache.clear()

@@ -1,0 +1,153 @@
+"""Operators: ``object.nkf_reconstruct`` and ``object.nkf_cancel``.
+
+``object.nkf_reconstruct`` acts on the active object. Invoked from the UI with a window, it is
+modal: the points are read on the main thread, a worker thread reconstructs, a 0.1 s window timer
+polls it (progress in the status bar and the panel), Esc or the Cancel button stops it, and the
+mesh is built on the main thread when it ends; Blender pushes one undo step when the operator
+finishes. Executed (scripts, ``bpy.app.background``), it runs synchronously and the new object
+exists when the call returns. Both paths go through :mod:`nkf_blender.runner`.
+"""
+
+from __future__ import annotations
+
+import bpy
+
+from . import runner, settings
+from .errors import UserError
+from .job import CANCELLED, FAILED, RUNNING
+
+TIMER_INTERVAL = 0.1
+
+
+def _tag_redraw(context) -> None:
+    wm = context.window_manager
+    for window in wm.windows:
+        for area in window.screen.areas:
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
+
+
+def _report_finished(op, ob, key) -> None:
+    rec = runner.record(key)
+    if rec is not None and rec.message:
+        op.report({"WARNING"}, f"NKF: {rec.message}")
+    op.report({"INFO"}, runner.summary(ob, key))
+
+
+class OBJECT_OT_nkf_reconstruct(bpy.types.Operator):
+    """Reconstruct a surface mesh from the active point cloud with Neural Kernel Fields"""
+
+    bl_idname = "object.nkf_reconstruct"
+    bl_label = "Reconstruct Surface"
+    bl_options = {"REGISTER", "UNDO"}
+
+    # Properties (method, regularization, resolution, max_points, device) are added by
+    # settings.prepare_classes at registration, with the method's default decided then.
+
+    def execute(self, context):
+        obj = context.active_object
+        on_progress = _print_stages() if bpy.app.background else None
+        try:
+            ob = runner.run_sync(context, obj, settings.to_settings(self), on_progress=on_progress)
+        except UserError as exc:
+            self.report({"ERROR"}, f"NKF: {exc}")
+            return {"CANCELLED"}
+        if ob is None:
+            self.report({"WARNING"}, "NKF: cancelled")
+            return {"CANCELLED"}
+        _report_finished(self, ob, runner.key_of(obj))
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        obj = context.active_object
+        try:
+            self._key = runner.start(context, obj, settings.to_settings(self))
+        except UserError as exc:
+            self.report({"ERROR"}, f"NKF: {exc}")
+            return {"CANCELLED"}
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(TIMER_INTERVAL, window=context.window)
+        wm.modal_handler_add(self)
+        context.workspace.status_text_set(f"NKF: reconstructing '{obj.name}'… (Esc to cancel)")
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        key = self._key
+        if event.type == "ESC" and event.value == "PRESS":
+            runner.cancel(key)
+            context.workspace.status_text_set("NKF: cancelling…")
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        state = runner.poll(key)
+        if state == RUNNING:
+            frac, label = runner.progress(key)
+            context.workspace.status_text_set(f"NKF: {label} {frac * 100:.0f}% (Esc to cancel)")
+            _tag_redraw(context)
+            return {"PASS_THROUGH"}
+        self._end(context)
+        try:
+            ob = runner.finish(context, key)
+        except UserError as exc:
+            self.report({"ERROR"}, f"NKF: {exc}")
+            return {"CANCELLED"}
+        if ob is None or state in (CANCELLED, FAILED):
+            self.report({"INFO"}, "NKF: reconstruction cancelled, nothing was added")
+            return {"CANCELLED"}
+        _report_finished(self, ob, key)
+        return {"FINISHED"}
+
+    def cancel(self, context):
+        # Blender calls this when it drops the modal handler (file load, quit, add-on disabled).
+        key = getattr(self, "_key", None)
+        if key is not None:
+            runner.cancel(key, wait=True)
+            if runner.poll(key) != RUNNING:
+                runner.finish(context, key)  # records the cancel; builds nothing
+        self._end(context)
+
+    def _end(self, context) -> None:
+        timer = getattr(self, "_timer", None)
+        if timer is not None:
+            context.window_manager.event_timer_remove(timer)
+            self._timer = None
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+        _tag_redraw(context)
+
+
+class OBJECT_OT_nkf_cancel(bpy.types.Operator):
+    """Stop the reconstruction of the active object (all of them when the active object has none)"""
+
+    bl_idname = "object.nkf_cancel"
+    bl_label = "Cancel Reconstruction"
+    bl_options = {"REGISTER"}
+
+    @classmethod
+    def poll(cls, context):
+        return runner.running_count() > 0
+
+    def execute(self, context):
+        act = runner.active_job(context.active_object)
+        keys = [act.source_uid] if act is not None else runner.running_keys()
+        for key in keys:
+            runner.cancel(key)
+        self.report({"INFO"}, f"NKF: cancelling {len(keys)} reconstruction{'s' if len(keys) != 1 else ''}")
+        return {"FINISHED"}
+
+
+def _print_stages():
+    """A progress listener for headless runs: one line per stage on stdout."""
+    seen = set()
+
+    def listener(fraction: float, stage: str) -> None:
+        if stage not in seen:
+            seen.add(stage)
+            print(f"NKF: {stage} ({fraction * 100:.0f}%)", flush=True)
+
+    return listener
+
+
+CLASSES = (OBJECT_OT_nkf_reconstruct, OBJECT_OT_nkf_cancel)

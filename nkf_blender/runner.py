@@ -1,0 +1,242 @@
+"""Reconstruction jobs as Blender sees them: start, poll, finish, cancel, all on the main thread.
+
+The operator (interactive and headless), the Python API and the panel share this module. A job
+is keyed by its source object's ``session_uid`` (stable across undo and renames), so each object
+runs at most one job at a time. Nothing here touches ``bpy`` from another thread: the points are
+read before the worker starts, and the mesh is built by :func:`finish` after it has ended.
+
+Driving a job the way the modal operator does::
+
+    key = runner.start(context, obj, settings)       # reads the points, starts the worker
+    while runner.poll(key) == "running":              # from a timer: returns at once
+        ...
+    new_obj = runner.finish(context, key)             # builds the mesh; None if cancelled/failed
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import bpy
+
+from . import deps, result, source
+from .errors import UserError
+from .job import CANCELLED, DONE, FAILED, RUNNING, ReconstructJob, Settings
+
+
+@dataclass
+class Active:
+    """A job in flight and what is needed to place its result."""
+
+    job: ReconstructJob
+    source_uid: int
+    source_name: str
+    matrix_world: object  # mathutils.Matrix, copied at start
+    collections: list  # names of the source's collections
+
+
+@dataclass
+class LastRun:
+    """The outcome of the last finished job of an object, for the panel."""
+
+    source_name: str
+    state: str
+    seconds: float
+    points: int
+    triangles: int = 0
+    result_name: str = ""
+    message: str = ""
+
+
+_active: dict[int, Active] = {}
+_last: dict[int, LastRun] = {}
+
+
+def key_of(obj) -> int:
+    """The object's ``session_uid``, or its address where the API lacks it (older Blender)."""
+    uid = getattr(obj, "session_uid", None)
+    return uid if uid is not None else obj.as_pointer()
+
+
+def find_object(uid: int):
+    """The object with this ``session_uid``, or None if it was deleted."""
+    for ob in bpy.data.objects:
+        if key_of(ob) == uid:
+            return ob
+    return None
+
+
+def active_job(obj) -> Active | None:
+    """The job running for ``obj``, if any."""
+    if obj is None:
+        return None
+    try:
+        return _active.get(key_of(obj))
+    except ReferenceError:
+        return None
+
+
+def last_run(obj) -> LastRun | None:
+    if obj is None:
+        return None
+    return _last.get(key_of(obj))
+
+
+def running_count() -> int:
+    return len(_active)
+
+
+def running_keys() -> list[int]:
+    """Keys of every job in flight."""
+    return list(_active)
+
+
+def record(key: int) -> LastRun | None:
+    """The outcome of the last finished job for this key (source or result object)."""
+    return _last.get(key)
+
+
+def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[ReconstructJob, Active]:
+    """Check everything that can be checked now and read the points; the job is not started.
+
+    Raises :class:`~nkf_blender.errors.UserError` (nothing changed) when the object or the
+    installation cannot run.
+    """
+    if obj is not None and key_of(obj) in _active:
+        raise UserError(
+            f"A reconstruction of '{obj.name}' is already running: wait for it to finish or press Cancel"
+        )
+    st = deps.status()
+    if not st.ready:
+        st = deps.refresh()
+    if not st.ready:
+        raise UserError(st.message())
+    pts, nrm, _where = source.read_points(obj)
+    job = ReconstructJob(pts, nrm, settings, on_progress=on_progress)
+    act = Active(
+        job=job,
+        source_uid=key_of(obj),
+        source_name=obj.name,
+        matrix_world=obj.matrix_world.copy(),
+        collections=[c.name for c in obj.users_collection],
+    )
+    return job, act
+
+
+def start(context, obj, settings: Settings) -> int:
+    """Start a job for ``obj`` on a worker thread; return its key for :func:`poll` and :func:`finish`."""
+    job, act = prepare(context, obj, settings)
+    _active[act.source_uid] = act
+    job.start()
+    return act.source_uid
+
+
+def poll(key: int) -> str:
+    """``"running"``, or how the job ended (``"done"``, ``"failed"``, ``"cancelled"``). Never blocks."""
+    act = _active.get(key)
+    if act is None:
+        return CANCELLED
+    job = act.job
+    if not job.finished:
+        return RUNNING
+    if job.cancel_event.is_set():
+        return CANCELLED
+    return job.state
+
+
+def progress(key: int) -> tuple[float, str]:
+    """``(fraction, stage label)`` of a running job."""
+    act = _active.get(key)
+    if act is None:
+        return 0.0, ""
+    frac, _stage = act.job.progress
+    return frac, act.job.stage_label
+
+
+def cancel(key: int, wait: bool = False, timeout: float = 10.0) -> bool:
+    """Ask a job to stop; with ``wait``, also join its thread. True if its thread has ended."""
+    act = _active.get(key)
+    if act is None:
+        return True
+    act.job.cancel()
+    return act.job.join(timeout) if wait else not act.job.alive
+
+
+def finish(context, key: int):
+    """After :func:`poll` stopped returning ``"running"``: build the result and forget the job.
+
+    Returns the new object, or None when the job was cancelled. Raises
+    :class:`~nkf_blender.errors.UserError` with nkf_model's message when it failed.
+    """
+    act = _active.get(key)
+    if act is None:
+        return None
+    job = act.job
+    if job.alive:
+        raise RuntimeError("finish() called while the worker is still running; poll() first")
+    del _active[key]
+    state = CANCELLED if job.cancel_event.is_set() else job.state
+    record = LastRun(act.source_name, state, job.elapsed, job.points_used)
+    _last[key] = record
+    if state == CANCELLED:
+        record.message = "cancelled"
+        return None
+    if state == FAILED:
+        record.message = job.error or "failed"
+        raise UserError(record.message)
+    assert state == DONE and job.result is not None
+    src = find_object(key)
+    matrix = src.matrix_world.copy() if src is not None else act.matrix_world
+    collections = [bpy.data.collections.get(n) for n in act.collections]
+    if src is not None:
+        collections = list(src.users_collection) or collections
+    t0 = time.perf_counter()
+    ob = result.add_object(
+        context, job.result, name=result.result_name(act.source_name), source=src, matrix_world=matrix,
+        collections=collections,
+    )
+    record.seconds = job.elapsed + (time.perf_counter() - t0)
+    record.triangles = len(job.result.faces)
+    record.result_name = ob.name
+    record.message = "; ".join(job.notes)
+    _last[key_of(ob)] = record  # the panel shows it for the new (active) object too
+    return ob
+
+
+def run_sync(context, obj, settings: Settings, on_progress=None):
+    """Read, reconstruct and build in the calling (main) thread; return the new object.
+
+    Used by the operator when there is no window to run modal in (``bpy.app.background``, or an
+    ``EXEC`` call from a script) and by :func:`nkf_blender.api.reconstruct_object`.
+    """
+    job, act = prepare(context, obj, settings, on_progress=on_progress)
+    _active[act.source_uid] = act
+    try:
+        job.run()
+    except BaseException:
+        _active.pop(act.source_uid, None)
+        raise
+    return finish(context, act.source_uid)
+
+
+def stop_all(timeout: float = 10.0) -> list[str]:
+    """Cancel every job and join its thread (add-on disabled, Blender quitting).
+
+    Returns the names of the sources whose thread did not end within ``timeout``.
+    """
+    for act in _active.values():
+        act.job.cancel()
+    stuck = [act.source_name for act in _active.values() if not act.job.join(timeout)]
+    _active.clear()
+    return stuck
+
+
+def summary(ob, key: int) -> str:
+    """One line for the status bar after a run."""
+    rec = record(key)
+    if rec is None or ob is None:
+        return ""
+    return (
+        f"NKF: '{ob.name}' from {rec.points:,} points, {rec.triangles:,} triangles in {rec.seconds:.1f} s"
+    )
