@@ -22,9 +22,11 @@ from .errors import (
     OutputPathError,
     PointCloudFileError,
     TooFewPointsError,
+    WeightsError,
 )
 from .mesh import Mesh
 from .reconstruct import METHODS, InputWarning, reconstruct
+from .weights import method_available
 
 __version__ = "0.1.0"
 
@@ -44,5 +46,7 @@ __all__ = [
     "OutputPathError",
     "NoSurfaceError",
     "MethodUnavailableError",
+    "WeightsError",
+    "method_available",
     "__version__",
 ]

@@ -52,3 +52,7 @@ class Cancelled(Exception):
 
 class WeightsError(NKFInputError):
     """A weights file for the learned kernel is missing, corrupt, or made for another model."""
+
+
+class DefaultWeightsMissingError(WeightsError, MethodUnavailableError):
+    """``method="nkf"`` was asked for without a weights file, and the package ships none."""

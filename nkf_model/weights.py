@@ -19,7 +19,7 @@ import json
 import math
 from pathlib import Path
 
-from .errors import WeightsError
+from .errors import DefaultWeightsMissingError, WeightsError
 
 FORMAT = "nkf-weights"
 FORMAT_VERSION = "1"
@@ -112,7 +112,7 @@ def load_weights(path=None):
 
     path = Path(path) if path is not None else DEFAULT_WEIGHTS
     if path is DEFAULT_WEIGHTS and not path.is_file():
-        raise WeightsError(
+        raise DefaultWeightsMissingError(
             f"this installation has no default weights for method 'nkf' ({path}); "
             "pass weights=PATH (--weights PATH) or use method 'splines'"
         )
@@ -157,3 +157,20 @@ def load_weights(path=None):
     if key is not None:
         _CACHE[key] = model
     return model
+
+
+def method_available(method: str) -> tuple[bool, str]:
+    """``(available, reason)`` for a method of :func:`nkf_model.reconstruct` in this installation.
+
+    ``"splines"`` always is; ``"nkf"`` is when the shipped default weights load (``reason`` then
+    says why not, in one sentence).
+    """
+    if method == "splines":
+        return True, ""
+    if method != "nkf":
+        return False, f"unknown method {method!r}"
+    try:
+        load_weights()
+    except WeightsError as exc:
+        return False, str(exc)
+    return True, ""

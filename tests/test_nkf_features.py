@@ -19,15 +19,22 @@ def _cloud(n=300, seed=0):
     return torch.tensor(x, dtype=torch.float32), torch.tensor(y, dtype=torch.float32)
 
 
-@pytest.mark.parametrize("config", [TINY, FeatureConfig(grid=16, unet_levels=3, point_weights=True)])
+@pytest.mark.parametrize("config", [
+    TINY,
+    FeatureConfig(grid=16, unet_levels=3, point_weights=True),
+    FeatureConfig(grid=8, unet_levels=2, unet_width=4, point_weights=True, const_channel=True, const_init=1.0),
+])
 def test_shapes(config):
     net = FeatureNet(config)
     x, y = _cloud()
     g = net.grid_features(x, y)
-    c = config.feature_dim + (1 if config.point_weights else 0)
+    c = config.feature_dim - config.const_channel + config.point_weights
     assert g.shape == (c, config.grid, config.grid, config.grid)
     phi, w = net.point_features(g, x[:50])
     assert phi.shape == (50, config.feature_dim)
+    if config.const_channel:  # a learned constant first feature: c^2 = exp(const_init)
+        assert torch.allclose(phi[:, 0], torch.full((50,), float(np.exp(0.5))))
+        phi = phi[:, 1:]
     if config.point_weights:
         assert w.shape == (50,) and bool(((w > 0) & (w <= 1)).all())
     else:

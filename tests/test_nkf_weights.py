@@ -9,7 +9,7 @@ import pytest
 import torch
 from nkf_helpers import TINY, tiny_net, tiny_weights
 
-from nkf_model.errors import NKFInputError, WeightsError
+from nkf_model.errors import MethodUnavailableError, NKFInputError, WeightsError
 from nkf_model.features import FeatureConfig
 from nkf_model.weights import DEFAULT_WEIGHTS, load_weights, read_weights, save_weights
 
@@ -135,10 +135,20 @@ def test_read_weights_returns_the_config(tmp_path):
 
 def test_shipped_weights_are_small_and_valid():
     if not DEFAULT_WEIGHTS.exists():
-        with pytest.raises(WeightsError, match="no default weights"):
+        with pytest.raises(MethodUnavailableError, match="no default weights"):
             load_weights()
         return
     assert DEFAULT_WEIGHTS.stat().st_size < 20 * 2**20
     model = load_weights()
     assert model.meta["format"] == "nkf-weights"
     assert json.loads(model.meta["training"])["step"] > 0
+
+
+def test_method_available():
+    import nkf_model
+
+    assert nkf_model.method_available("splines") == (True, "")
+    ok, why = nkf_model.method_available("nkf")
+    assert ok == DEFAULT_WEIGHTS.exists()
+    assert ok or "no default weights" in why
+    assert nkf_model.method_available("magic")[0] is False
