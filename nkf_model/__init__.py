@@ -24,11 +24,13 @@ from .errors import (
     OutputPathError,
     PointCloudFileError,
     TooFewPointsError,
+    WeightsError,
 )
 from .fallback import DeviceWarning
 from .mesh import Mesh
 from .normals import estimate_normals
 from .reconstruct import METHODS, InputWarning, reconstruct
+from .weights import method_available
 
 __version__ = "0.1.0"
 
@@ -53,5 +55,7 @@ __all__ = [
     "estimate",
     "Estimate",
     "estimate_normals",
+    "WeightsError",
+    "method_available",
     "__version__",
 ]

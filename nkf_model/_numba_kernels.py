@@ -179,6 +179,140 @@ def _row_g(q, i, ct, j0, j1, buf):
         buf[j] = _g(buf[j])
 
 
+# 12-D inputs [x : phi : 1] of the learned kernel with d = 8 features: the same fused loops as the
+# 4-D ones, unrolled (2-3x faster than the generic blocked loop of ``_row_g``).
+@nb.njit(inline="always", **_OPTS)
+def _row_g12(q, i, ct, buf, acute):
+    """buf[j] = g(|q[i] - c[j]|^2) for 12-D unit vectors, centres transposed (12, M)."""
+    q0 = q[i, 0]
+    q1 = q[i, 1]
+    q2 = q[i, 2]
+    q3 = q[i, 3]
+    q4 = q[i, 4]
+    q5 = q[i, 5]
+    q6 = q[i, 6]
+    q7 = q[i, 7]
+    q8 = q[i, 8]
+    q9 = q[i, 9]
+    q10 = q[i, 10]
+    q11 = q[i, 11]
+    r0 = ct[0]
+    r1 = ct[1]
+    r2 = ct[2]
+    r3 = ct[3]
+    r4 = ct[4]
+    r5 = ct[5]
+    r6 = ct[6]
+    r7 = ct[7]
+    r8 = ct[8]
+    r9 = ct[9]
+    r10 = ct[10]
+    r11 = ct[11]
+    if acute:
+        for j in range(ct.shape[1]):
+            t0 = q0 - r0[j]
+            t1 = q1 - r1[j]
+            t2 = q2 - r2[j]
+            t3 = q3 - r3[j]
+            t4 = q4 - r4[j]
+            t5 = q5 - r5[j]
+            t6 = q6 - r6[j]
+            t7 = q7 - r7[j]
+            t8 = q8 - r8[j]
+            t9 = q9 - r9[j]
+            t10 = q10 - r10[j]
+            t11 = q11 - r11[j]
+            d2 = (t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3 + t4 * t4 + t5 * t5
+                  + t6 * t6 + t7 * t7 + t8 * t8 + t9 * t9 + t10 * t10 + t11 * t11)
+            buf[j] = _g_acute(d2)
+    else:
+        for j in range(ct.shape[1]):
+            t0 = q0 - r0[j]
+            t1 = q1 - r1[j]
+            t2 = q2 - r2[j]
+            t3 = q3 - r3[j]
+            t4 = q4 - r4[j]
+            t5 = q5 - r5[j]
+            t6 = q6 - r6[j]
+            t7 = q7 - r7[j]
+            t8 = q8 - r8[j]
+            t9 = q9 - r9[j]
+            t10 = q10 - r10[j]
+            t11 = q11 - r11[j]
+            d2 = (t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3 + t4 * t4 + t5 * t5
+                  + t6 * t6 + t7 * t7 + t8 * t8 + t9 * t9 + t10 * t10 + t11 * t11)
+            buf[j] = _g(d2)
+
+
+@nb.njit(parallel=True, **_OPTS)
+def gsum12(q, ct, beta, acute):
+    """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for 12-D unit vectors; ``ct`` is (12, M)."""
+    nq = q.shape[0]
+    out = np.empty(nq)
+    for i in nb.prange(nq):
+        q0 = q[i, 0]
+        q1 = q[i, 1]
+        q2 = q[i, 2]
+        q3 = q[i, 3]
+        q4 = q[i, 4]
+        q5 = q[i, 5]
+        q6 = q[i, 6]
+        q7 = q[i, 7]
+        q8 = q[i, 8]
+        q9 = q[i, 9]
+        q10 = q[i, 10]
+        q11 = q[i, 11]
+        r0 = ct[0]
+        r1 = ct[1]
+        r2 = ct[2]
+        r3 = ct[3]
+        r4 = ct[4]
+        r5 = ct[5]
+        r6 = ct[6]
+        r7 = ct[7]
+        r8 = ct[8]
+        r9 = ct[9]
+        r10 = ct[10]
+        r11 = ct[11]
+        s = 0.0
+        if acute:
+            for j in range(ct.shape[1]):
+                t0 = q0 - r0[j]
+                t1 = q1 - r1[j]
+                t2 = q2 - r2[j]
+                t3 = q3 - r3[j]
+                t4 = q4 - r4[j]
+                t5 = q5 - r5[j]
+                t6 = q6 - r6[j]
+                t7 = q7 - r7[j]
+                t8 = q8 - r8[j]
+                t9 = q9 - r9[j]
+                t10 = q10 - r10[j]
+                t11 = q11 - r11[j]
+                d2 = (t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3 + t4 * t4 + t5 * t5
+                      + t6 * t6 + t7 * t7 + t8 * t8 + t9 * t9 + t10 * t10 + t11 * t11)
+                s += beta[j] * _g_acute(d2)
+        else:
+            for j in range(ct.shape[1]):
+                t0 = q0 - r0[j]
+                t1 = q1 - r1[j]
+                t2 = q2 - r2[j]
+                t3 = q3 - r3[j]
+                t4 = q4 - r4[j]
+                t5 = q5 - r5[j]
+                t6 = q6 - r6[j]
+                t7 = q7 - r7[j]
+                t8 = q8 - r8[j]
+                t9 = q9 - r9[j]
+                t10 = q10 - r10[j]
+                t11 = q11 - r11[j]
+                d2 = (t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3 + t4 * t4 + t5 * t5
+                      + t6 * t6 + t7 * t7 + t8 * t8 + t9 * t9 + t10 * t10 + t11 * t11)
+                s += beta[j] * _g(d2)
+        out[i] = s
+    return out
+
+
 _BLOCK = 1024
 
 
@@ -209,6 +343,9 @@ def gmatrix(q, ct, acute):
     if ct.shape[0] == 4:
         for i in nb.prange(nq):
             _row_g4(q, i, ct, out[i], acute)
+    elif ct.shape[0] == 12:
+        for i in nb.prange(nq):
+            _row_g12(q, i, ct, out[i], acute)
     else:
         for i in nb.prange(nq):
             _row_g(q, i, ct, 0, nc, out[i])
@@ -232,6 +369,8 @@ def gnormal(q, ct, u, v, w, nchunks, acute):
         for i in range(c * step, min(nq, (c + 1) * step)):
             if ct.shape[0] == 4:
                 _row_g4(q, i, ct, buf, acute)
+            elif ct.shape[0] == 12:
+                _row_g12(q, i, ct, buf, acute)
             else:
                 _row_g(q, i, ct, 0, nc, buf)
             t = 0.0

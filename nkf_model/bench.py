@@ -1,4 +1,4 @@
-"""Benchmark: ``splines`` against screened Poisson on the corpus's validation meshes.
+"""Benchmark: ``nkf`` and ``splines`` against screened Poisson on the corpus's validation meshes.
 
 Run ``python -m nkf_model.bench`` (Poisson needs the ``bench`` extra: Open3D, which on Debian also
 needs ``libusb-1.0-0``). It prints Markdown tables:
@@ -8,6 +8,10 @@ needs ``libusb-1.0-0``). It prints Markdown tables:
    its peak memory (resident-set growth over the call, sampled every 5 ms);
 2. ``--tradeoff``: solver size (Nystrom centres) against IoU and time at 10,000 points;
 3. ``--growth``: grid points and kernel evaluations from resolution 64 to 512.
+
+``--methods nkf splines poisson`` adds the learned kernel (``--weights PATH``, default the shipped
+weights), ``--half 3000`` adds half-surface inputs (points from one side of a random plane through the
+centre of each mesh's box), and ``--plot FILE.png`` draws mean IoU against the number of input points.
 
 Reference samples and occupancies of each validation mesh are cached in ``--cache``.
 """
@@ -130,6 +134,38 @@ def run_splines(pts, nrm, resolution, **kw):
     return m.vertices.astype(np.float64), m.faces, m.stats
 
 
+def run_nkf(pts, nrm, resolution, weights=None, **kw):
+    m = reconstruct(pts, nrm, method="nkf", resolution=resolution, device="cpu", weights=weights, **kw)
+    return m.vertices.astype(np.float64), m.faces, m.stats
+
+
+def half_input(vertices, faces, n_points: int, noise: float, seed: int):
+    """Oriented input points from one side of a random plane through the centre of the mesh's box.
+
+    ``n_points`` uniform surface samples with ``(p - c) . d > 0`` for a direction ``d`` drawn from
+    ``seed`` and the box centre ``c`` (the origin of the corpus's unit box), then Gaussian position
+    noise of standard deviation ``noise``; normals of the true surface.
+    """
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    v = np.asarray(vertices, np.float64)
+    c = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    pts, nrm = np.zeros((0, 3)), np.zeros((0, 3))
+    draw = 2 * n_points
+    for _ in range(20):
+        p, q = metrics.sample_surface(vertices, faces, draw, rng)
+        keep = (p - c) @ d > 0
+        pts, nrm = np.concatenate([pts, p[keep]]), np.concatenate([nrm, q[keep]])
+        if len(pts) >= n_points:
+            break
+        draw *= 2
+    pts, nrm = pts[:n_points], nrm[:n_points]
+    if noise > 0:
+        pts = pts + rng.normal(scale=noise, size=pts.shape)
+    return pts, nrm
+
+
 def run_poisson(pts, nrm, depth=8):
     import open3d as o3d
 
@@ -169,40 +205,100 @@ def machine() -> str:
     )
 
 
-def warm_up():
+def warm_up(weights=None):
     """Compile (or load from numba's cache) every kernel before timing anything."""
     rng = np.random.default_rng(0)
     p = rng.normal(size=(400, 3))
     p /= np.linalg.norm(p, axis=1, keepdims=True)
-    reconstruct(p, p, resolution=32, device="cpu")
-    reconstruct(p, p, resolution=32, device="cpu", max_centres=300)
+    reconstruct(p, p, method="splines", resolution=32, device="cpu")
+    reconstruct(p, p, method="splines", resolution=32, device="cpu", max_centres=300)
+    if weights is not False:
+        try:
+            reconstruct(p, p, method="nkf", resolution=32, device="cpu", weights=weights)
+            reconstruct(p, p, method="nkf", resolution=32, device="cpu", max_centres=300, weights=weights)
+        except ValueError:
+            pass  # no weights: the nkf rows report the error
 
 
-def main_table(entries, points, noises, methods, cache, res_override=None, log=print):
+def main_table(entries, points, noises, methods, cache, res_override=None, log=print, weights=None, half=()):
+    """Rows ``(label, resolution, noise, method, results)`` for every (points, noise, method), then the
+    half-surface inputs (``half``: point counts, noise-free), each over all ``entries``."""
     rows = []
-    for n in points:
+    modes = [(n, noise, False) for n in points for noise in noises] + [(n, 0.0, True) for n in half]
+    for n, noise, is_half in modes:
         res = res_override or DEFAULT_RES.get(n, 128)
-        for noise in noises:
-            for method in methods:
-                results = []
-                for e in entries:
-                    ref = reference(e, cache)
-                    v0, f0 = corpus.load(e)
+        label = f"{n} half" if is_half else str(n)
+        for method in methods:
+            results = []
+            for e in entries:
+                ref = reference(e, cache)
+                v0, f0 = corpus.load(e)
+                if is_half:
+                    pts, nrm = half_input(v0, f0, n, noise, corpus.stable_seed("half-input", e.name, n, noise))
+                else:
                     pts, nrm = corpus.sample_input(v0, f0, n, noise, corpus.stable_seed("input", e.name, n, noise))
-                    if method == "splines":
-                        v, f, stats, dt, mem, err = measure(run_splines, pts, nrm, res)
-                    else:
-                        v, f, stats, dt, mem, err = measure(run_poisson, pts, nrm)
-                    s = score(v, f, ref, corpus.stable_seed("score", e.name, n, noise, method))
-                    s.update(time=dt, mem=mem, err=err, mesh=e.name)
-                    results.append(s)
-                    log(
-                        f"  {method:8s} n={n:6d} noise={noise:<6} {e.name:40s} IoU {s['iou']:.3f} "
-                        f"CD {s['chamfer_l1']:.4f} t {dt:6.2f}s mem {mem / 2**20:7.0f} MiB"
-                        + (f"  FAILED: {err}" if err else "")
-                    )
-                rows.append((n, res, noise, method, results))
+                if method == "splines":
+                    v, f, stats, dt, mem, err = measure(run_splines, pts, nrm, res)
+                elif method == "nkf":
+                    v, f, stats, dt, mem, err = measure(run_nkf, pts, nrm, res, weights)
+                else:
+                    v, f, stats, dt, mem, err = measure(run_poisson, pts, nrm)
+                s = score(v, f, ref, corpus.stable_seed("score", e.name, n, noise, method, *(["half"] * is_half)))
+                s.update(time=dt, mem=mem, err=err, mesh=e.name)
+                results.append(s)
+                log(
+                    f"  {method:8s} n={label:>10s} noise={noise:<6} {e.name:40s} IoU {s['iou']:.3f} "
+                    f"CD {s['chamfer_l1']:.4f} t {dt:6.2f}s mem {mem / 2**20:7.0f} MiB"
+                    + (f"  FAILED: {err}" if err else "")
+                )
+            rows.append((label, res, noise, method, results))
     return rows
+
+
+def plot_iou(rows, path: Path, title: str = "") -> Path:
+    """PNG of mean IoU against the number of input points, one line per method, one panel per noise
+    level (half-surface rows as separate markers), like the figure of the NKF paper."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    noises = sorted({noise for _, _, noise, _, _ in rows})
+    fig, axes = plt.subplots(1, len(noises), figsize=(5.2 * len(noises), 4), squeeze=False)
+    colours = {"nkf": "C3", "splines": "C0", "poisson": "C2"}
+    for ax, noise in zip(axes[0], noises):
+        for method in dict.fromkeys(m for _, _, _, m, _ in rows):
+            pts = sorted(
+                (int(label), statistics.mean(r["iou"] for r in res))
+                for label, _, nz, m, res in rows
+                if m == method and nz == noise and label.isdigit()
+            )
+            if pts:
+                x, y = zip(*pts)
+                ax.plot(x, y, "o-", color=colours.get(method), label=method)
+            half = [(int(label.split()[0]), statistics.mean(r["iou"] for r in res))
+                    for label, _, nz, m, res in rows if m == method and nz == noise and not label.isdigit()]
+            for x, y in half:
+                ax.plot([x], [y], "^", ms=9, color=colours.get(method), mfc="none",
+                        label=f"{method}, half surface")
+        ax.set_xscale("log")
+        ticks = sorted({int(label.split()[0]) for label, _, _, _, _ in rows})
+        ax.set_xticks(ticks)
+        ax.set_xticklabels([f"{t:,}" for t in ticks])
+        ax.minorticks_off()
+        ax.set_xlabel("input points")
+        ax.set_ylabel("mean IoU")
+        ax.set_title(f"noise {noise:g}")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
 
 
 def format_main(rows) -> str:
@@ -214,7 +310,7 @@ def format_main(rows) -> str:
     for n, res, noise, method, results in rows:
         ok = [r for r in results if not r["err"]]
         cds = [r["chamfer_l1"] for r in ok]
-        res_s = str(res) if method == "splines" else "depth 8"
+        res_s = "depth 8" if method == "poisson" else str(res)
         out.append(
             f"| {n} | {res_s} | {noise} | {method} | {statistics.mean(r['iou'] for r in results):.4f} "
             f"| {statistics.mean(cds) if cds else float('nan'):.5f} "
@@ -264,7 +360,7 @@ def growth(entry, n=1000, resolutions=(64, 128, 256, 512), log=print) -> str:
     prev = None
     for r in resolutions:
         t0 = time.perf_counter()
-        m = reconstruct(pts, nrm, resolution=r, device="cpu")
+        m = reconstruct(pts, nrm, method="splines", resolution=r, device="cpu")
         dt = time.perf_counter() - t0
         k = m.stats["kernel_evaluations_grid"]
         ratio = f"{k / prev:.2f}" if prev else ""
@@ -280,7 +376,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m nkf_model.bench", description=__doc__.split("\n")[0])
     ap.add_argument("--points", type=int, nargs="+", default=[1000, 10000])
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.005])
-    ap.add_argument("--methods", nargs="+", default=["splines", "poisson"], choices=["splines", "poisson"])
+    ap.add_argument("--methods", nargs="+", default=["splines", "poisson"], choices=["nkf", "splines", "poisson"])
+    ap.add_argument("--weights", default=None, help="weights file for nkf (default: the shipped weights)")
+    ap.add_argument("--half", type=int, nargs="*", default=[], metavar="POINTS",
+                    help="also run half-surface inputs (one side of a plane through the centre) of these sizes")
+    ap.add_argument("--plot", type=Path, default=None, help="write a PNG of mean IoU against input points")
     ap.add_argument("--resolution", type=int, default=None, help="override the per-size resolution")
     ap.add_argument("--limit", type=int, default=None, help="use only the first N validation meshes")
     ap.add_argument("--split", default="val")
@@ -299,11 +399,14 @@ def main(argv=None) -> int:
     entries = [e for e in corpus.manifest() if e.split == args.split]
     if args.limit:
         entries = entries[: args.limit]
-    warm_up()
+    warm_up(args.weights if "nkf" in args.methods else False)
     parts = [f"Machine: {machine()}", ""]
     if not args.skip_main:
-        rows = main_table(entries, args.points, args.noise, args.methods, args.cache, args.resolution, log)
+        rows = main_table(entries, args.points, args.noise, args.methods, args.cache, args.resolution, log,
+                          weights=args.weights, half=args.half)
         parts += [f"Meshes: {len(entries)} ({args.split} split)", "", format_main(rows), ""]
+        if args.plot:
+            plot_iou(rows, args.plot, title=f"{len(entries)} {args.split} meshes of the corpus")
     if args.tradeoff is not None:
         cl = args.tradeoff or [2000, 4000, 6000, 8000]
         sub = entries[: args.tradeoff_limit]

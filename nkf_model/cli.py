@@ -95,7 +95,20 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--dry-run", action="store_true",
                    help="print the time and memory estimate and what would be done, then stop")
     r.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
+    r.add_argument("--weights", default=None, metavar="PATH",
+                   help="weights file (safetensors) for --method nkf; default: the weights shipped in the package")
     r.add_argument("--debug", action="store_true", help="show the full traceback on errors")
+    t = sub.add_parser(
+        "train",
+        help="train the learned kernel (method nkf) on the mesh corpus",
+        description="Train the feature network of the learned kernel on the train split of the mesh corpus.",
+    )
+    t.add_argument("--config", default="configs/nkf.toml", help="TOML training config (default configs/nkf.toml)")
+    t.add_argument("--out", default=None, metavar="DIR", help="run folder (default runs/CONFIG-NAME)")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    t.add_argument("--max-steps", type=int, default=None, metavar="N", help="stop after N more steps")
+    t.add_argument("--quiet", action="store_true", help="no progress bar; log lines on stderr instead")
+    t.add_argument("--debug", action="store_true", help="show the full traceback on errors")
     return ap
 
 
@@ -140,6 +153,10 @@ def cmd_reconstruct(args) -> int:
     if args.max_points is not None and args.max_points < 10:
         raise NKFInputError(f"--max-points must be at least 10, got {args.max_points}")
     out = check_output_path(args.output)
+    if args.method == "nkf":
+        from .weights import load_weights
+
+        load_weights(args.weights)  # a bad weights file fails before the input is read
     t0 = time.perf_counter()
     cloud = read_point_cloud(args.input)
     if args.normals == "given" and cloud.normals is None:
@@ -180,7 +197,8 @@ def cmd_reconstruct(args) -> int:
                                device=args.device, progress=progress, cancel=cancel, seed=args.seed,
                                normals_mode="estimate" if estimate_n else "given", orientation=args.orient,
                                viewpoints=args.viewpoint, colors=colors, trim=trim, min_piece=min_piece,
-                               reduce_to=reduce_to, solver=args.solver, memory_budget=memory_budget)
+                               reduce_to=reduce_to, solver=args.solver, memory_budget=memory_budget,
+                               weights=args.weights)
     finally:
         close()
     for w in caught:
@@ -215,6 +233,10 @@ def main(argv=None) -> int:
     try:
         if args.command == "reconstruct":
             return cmd_reconstruct(args)
+        if args.command == "train":
+            from .training import main as train_main
+
+            return train_main(args)
         ap.error(f"unknown command {args.command}")  # pragma: no cover - argparse guards this
     except NKFInputError as exc:
         if args.debug:

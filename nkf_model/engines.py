@@ -25,7 +25,10 @@ CHUNK_EVALS = 50_000_000
 Check = Optional[Callable[[], None]]
 
 
-def _chunks(n_rows: int, n_cols: int, per_chunk: int = CHUNK_EVALS):
+def _chunks(n_rows: int, n_cols: int, per_chunk: int = CHUNK_EVALS, dim: int = 4):
+    # Kernel evaluations cost more with more dimensions (the learned kernel's 12-D vectors about
+    # twice the 4-D ones): keep each chunk's time, not its count, about constant.
+    per_chunk = per_chunk * 4 // max(4, dim)
     step = max(1, per_chunk // max(1, n_cols))
     for s in range(0, n_rows, step):
         yield s, min(n_rows, s + step)
@@ -68,25 +71,44 @@ class NumbaEngine(Engine):
 
     def _acute(self, *unit_vectors) -> bool:
         """True when every 4-D unit vector is [x : 1] / |[x : 1]| with |x| < 1 (all pairs within
-        90 degrees), so the faster angle term applies."""
+        90 degrees), so the faster angle term applies.
+
+        For the 12-D vectors [x : phi : 1] of the learned kernel (d = 8) the same argument is made
+        with a common direction ``e`` (the mean of the vectors) instead of the last axis: unit
+        vectors that are all within 45 degrees of ``e`` (``u . e >= 1/sqrt(2)``) are pairwise
+        within 90 degrees."""
         lim = self._nk.ACUTE_MIN_LAST
+        dims = {u.shape[1] for u in unit_vectors}
+        if dims == {12}:
+            e = sum(u.sum(axis=0) for u in unit_vectors)
+            norm = float(np.linalg.norm(e))
+            if norm == 0.0:
+                return False
+            e = e / norm
+            return all(len(u) == 0 or float((u @ e).min()) >= lim for u in unit_vectors)
         return all(u.shape[1] == 4 and (len(u) == 0 or float(u[:, 3].min()) >= lim) for u in unit_vectors)
 
     def kernel_sum(self, qu, qr, cu, cr, w, check: Check = None):
         beta = np.ascontiguousarray(cr * w)
         out = np.empty(len(qu))
         four = cu.shape[1] == 4
+        twelve = cu.shape[1] == 12
         acute = self._acute(qu, cu)
         if four:
             cols = [np.ascontiguousarray(cu[:, k]) for k in range(4)]
         else:
             ct = np.ascontiguousarray(cu.T)
-        for s, e in _chunks(len(qu), len(cu)):
+        for s, e in _chunks(len(qu), len(cu), dim=cu.shape[1]):
             if check is not None:
                 check()
             q = np.ascontiguousarray(qu[s:e])
             with self._lock:
-                out[s:e] = self._nk.gsum4(q, *cols, beta, acute) if four else self._nk.gsum(q, ct, beta)
+                if four:
+                    out[s:e] = self._nk.gsum4(q, *cols, beta, acute)
+                elif twelve:
+                    out[s:e] = self._nk.gsum12(q, ct, beta, acute)
+                else:
+                    out[s:e] = self._nk.gsum(q, ct, beta)
         return out * qr / math.pi
 
     def kernel_matrix(self, qu, qr, cu, cr, check: Check = None):
@@ -94,7 +116,7 @@ class NumbaEngine(Engine):
         acute = self._acute(qu, cu)
         g = np.empty((len(qu), len(cu)))
         # Writing the matrix is slower per entry than summing: smaller chunks.
-        for s, e in _chunks(len(qu), len(cu), per_chunk=CHUNK_EVALS // 10):
+        for s, e in _chunks(len(qu), len(cu), per_chunk=CHUNK_EVALS // 10, dim=cu.shape[1]):
             if check is not None:
                 check()
             with self._lock:
@@ -110,7 +132,7 @@ class NumbaEngine(Engine):
         acc = np.zeros(len(cu))
         nchunks = max(1, self._numba.get_num_threads())
         acute = self._acute(xu, cu)
-        for s, e in _chunks(len(xu), len(cu)):
+        for s, e in _chunks(len(xu), len(cu), dim=cu.shape[1]):
             if check is not None:
                 check()
             with self._lock:

@@ -53,3 +53,11 @@ class MemoryBudgetError(InvalidParameterError):
 
 class Cancelled(Exception):
     """The work was stopped because the caller's cancel event was set."""
+
+
+class WeightsError(NKFInputError):
+    """A weights file for the learned kernel is missing, corrupt, or made for another model."""
+
+
+class DefaultWeightsMissingError(WeightsError, MethodUnavailableError):
+    """``method="nkf"`` was asked for without a weights file, and the package ships none."""

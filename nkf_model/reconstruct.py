@@ -18,7 +18,7 @@ from . import budget
 from .augment import augment, default_eps
 from .colors import as_rgb8, transfer_colors
 from .engines import select_engine
-from .errors import InvalidParameterError, MethodUnavailableError, MissingNormalsError, NoSurfaceError
+from .errors import InvalidParameterError, MissingNormalsError, NoSurfaceError
 from .evaluate import GRID_HALF, MAX_RESOLUTION, MIN_RESOLUTION, evaluate_sparse
 from .fallback import run_with_cpu_fallback
 from .inputs import clean_points
@@ -33,9 +33,11 @@ from .reduce import voxel_for_count, voxel_reduce
 from .sampling import farthest_point_sample
 from .solve import KernelFunction, SolveInfo, solve_dense, solve_falkon
 from .trim import check_trim_settings, clean_scan_mesh
+from .weights import has_default_weights, load_weights
 
 METHODS = ("splines", "nkf")
-DEFAULT_METHOD = "splines"
+# The learned kernel is the default when the package ships its weights; "splines" needs none.
+DEFAULT_METHOD = "nkf" if has_default_weights() else "splines"
 DEFAULT_LAM = 1e-10
 DEFAULT_RESOLUTION = 128
 # Up to this many constraints (2 per point) the solve is exact; beyond it, Falkon with this many
@@ -106,6 +108,7 @@ def reconstruct(
     reduce_to: int | None = DEFAULT_REDUCE_TO,
     solver: str = "auto",
     memory_budget: float | None = None,
+    weights=None,
 ) -> Mesh:
     """Reconstruct a surface from points (oriented or not).
 
@@ -118,7 +121,8 @@ def reconstruct(
         ``normals_mode``).
     method : {"splines", "nkf"}
         ``"splines"``: the data-free Neural Splines kernel, no weights needed.
-        ``"nkf"``: the learned Neural Kernel Field kernel.
+        ``"nkf"``: the learned Neural Kernel Field kernel (needs weights; the default when the
+        package ships them, see :func:`nkf_model.weights.has_default_weights`).
     lam : float
         Regularisation per constraint, >= 0 (the paper's lambda; the solve uses
         ``(G + 2N lam I) alpha = y``). Larger values smooth the surface; 1e-12 to 1e-8 fit the points.
@@ -130,8 +134,8 @@ def reconstruct(
         memory, the work continues on the CPU with a :class:`~nkf_model.fallback.DeviceWarning`.
     progress : callable, optional
         ``progress(fraction, stage)``: ``fraction`` in [0, 1], ``stage`` one of ``"normalise"``,
-        ``"reduce"``, ``"normals"``, ``"augment"``, ``"solve"``, ``"evaluate"``, ``"mesh"``,
-        ``"clean"``, ``"colors"``, then ``"done"`` (stages that do not run are skipped).
+        ``"reduce"``, ``"normals"``, ``"augment"``, ``"features"`` (nkf only), ``"solve"``, ``"evaluate"``,
+        ``"mesh"``, ``"clean"``, ``"colors"``, then ``"done"`` (stages that do not run are skipped).
     cancel : threading.Event, optional
         When set, the work stops within 0.5 s by raising :class:`~nkf_model.errors.Cancelled`.
     eps : float, optional
@@ -172,6 +176,9 @@ def reconstruct(
         Bytes the run may use; if :func:`nkf_model.budget.estimate` predicts more, the call
         raises :class:`~nkf_model.errors.MemoryBudgetError` before any large allocation. Default:
         :func:`nkf_model.budget.default_memory_budget`.
+    weights : str or os.PathLike, optional
+        Weights file (safetensors) for ``method="nkf"``; default: the weights shipped in the
+        package. Ignored by ``method="splines"``.
 
     Returns
     -------
@@ -183,28 +190,26 @@ def reconstruct(
     Raises
     ------
     nkf_model.errors.NKFInputError
-        A ``ValueError`` subclass for every bad input or setting (see :mod:`nkf_model.errors`).
+        A ``ValueError`` subclass for every bad input or setting (see :mod:`nkf_model.errors`);
+        :class:`~nkf_model.errors.WeightsError` for a missing, corrupt or mismatched weights file.
     nkf_model.errors.Cancelled
         ``cancel`` was set.
     """
     check_settings(method, lam, resolution, device, eps, max_centres)
     check_scan_settings(normals_mode, normals, solver, reduce_to, trim, min_piece)
+    model = load_weights(weights) if method == "nkf" else None
     with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
         return _reconstruct(
             points, normals, method=method, lam=lam, resolution=resolution, device=device, progress=progress,
             cancel=cancel, eps=eps, max_centres=max_centres, seed=seed, normals_mode=normals_mode,
             orientation=orientation, viewpoints=viewpoints, colors=colors, trim=trim, min_piece=min_piece,
-            reduce_to=reduce_to, solver=solver, memory_budget=memory_budget,
+            reduce_to=reduce_to, solver=solver, memory_budget=memory_budget, model=model,
         )
 
 
 def _reconstruct(points, normals, *, method, lam, resolution, device, progress, cancel, eps, max_centres, seed,
-                 normals_mode, orientation, viewpoints, colors, trim, min_piece, reduce_to, solver, memory_budget):
-    if method == "nkf":
-        raise MethodUnavailableError(
-            "method 'nkf' needs trained weights, which this version does not ship yet; "
-            "use method='splines'"
-        )
+                 normals_mode, orientation, viewpoints, colors, trim, min_piece, reduce_to, solver, memory_budget,
+                 model):
     vp = check_viewpoints(viewpoints)
     orient = check_orientation(orientation, vp)
     estimate_n = normals_mode == "estimate" or (normals_mode == "auto" and normals is None)
@@ -218,7 +223,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
     t_start = time.perf_counter()
     engine = select_engine(device)
     stages = ["normalise"] + (["reduce"] if plan.reduced else []) + (["normals"] if estimate_n else [])
-    stages += ["augment", "solve", "evaluate", "mesh"]
+    stages += ["augment"] + (["features"] if model is not None else []) + ["solve", "evaluate", "mesh"]
     stages += (["clean"] if (trim is not None or min_piece > 0) else []) + (["colors"] if colors is not None else [])
     track = Tracker(progress, cancel, stages=stages)
     track.begin("normalise")
@@ -254,7 +259,13 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
     track.begin("augment")
     eps_used = float(eps) if eps is not None else default_eps(n)
     xa, y = augment(x, nrm, eps_used)
-    a = homogeneous(xa)
+    phi = None
+    if model is None:
+        a = homogeneous(xa)
+    else:
+        track.begin("features")
+        prep = model.prepare(xa, y)
+        a, y, phi = prep.a, prep.y, prep.phi
     kind = choose_solver(n, max_centres, solver)
 
     def fit_and_evaluate(eng):
@@ -262,17 +273,18 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
         pou_info = None
         if kind == "dense":
             alpha, info = solve_dense(a, y, float(lam), eng, check=track.check)
-            fn = KernelFunction(a, alpha, eng)
+            fn = KernelFunction(a, alpha, eng, features=phi)
             n_centres = len(a)
         elif kind == "falkon":
             half = farthest_point_sample(x, min(n, max_centres // 2), seed=seed)
             idx = np.concatenate([half, half + n])
             alpha, info = solve_falkon(a, y, idx, float(lam), eng, tol=FALKON_TOL, check=track.check,
                                        step=track.step)
-            fn = KernelFunction(a[idx], alpha, eng)
+            fn = KernelFunction(a[idx], alpha, eng, features=phi)
             n_centres = len(idx)
         else:
-            fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, check=track.check, step=track.step)
+            fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, check=track.check, step=track.step,
+                                   features=phi)
             info = SolveInfo("pou", len(a), pou_info.centres)
             n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
         track.begin("evaluate")
@@ -311,6 +323,8 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
     local = unit_v * norm.scale
     track.finish()
     stats = {
+        "method": method,
+        "weights": str(model.meta.get("path", "")) if model is not None else None,
         "points_in": n_in,
         "points_used": n,
         "dropped": dict(clean.dropped),

@@ -1,0 +1,111 @@
+"""method="nkf" in reconstruct() and on the command line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from nkf_helpers import tiny_weights
+from shapes import sphere_points
+
+import nkf_model
+from nkf_model.cli import main
+from nkf_model.errors import WeightsError
+from nkf_model.fileio import read_mesh
+from nkf_model.metrics import chamfer_l1, sample_surface
+from nkf_model.reconstruct import DEFAULT_METHOD
+from nkf_model.weights import has_default_weights
+
+
+def _closed_and_outward(m):
+    f = m.faces.astype(np.int64)
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    v = m.vertices.astype(np.float64)
+    volume = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0
+    return bool(np.all(counts == 2)), volume
+
+
+def test_zero_features_give_the_splines_mesh(tmp_path, sphere500):
+    w = tiny_weights(tmp_path / "zero.safetensors", gate=0.0)
+    p, n = sphere500
+    a = nkf_model.reconstruct(p, n, method="splines", resolution=40, device="cpu")
+    b = nkf_model.reconstruct(p, n, method="nkf", weights=w, resolution=40, device="cpu")
+    assert a.faces.shape == b.faces.shape
+    np.testing.assert_allclose(a.vertices, b.vertices, atol=1e-5)
+    assert b.stats["method"] == "nkf" and "features" in b.stats["timings"]
+
+
+def test_nkf_reports_the_features_stage(tmp_path, sphere500):
+    w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)
+    calls = []
+    nkf_model.reconstruct(*sphere500, method="nkf", weights=w, resolution=32, device="cpu",
+                          progress=lambda f, s: calls.append((f, s)))
+    stages = [s for _, s in calls]
+    assert "features" in stages and stages.index("augment") < stages.index("features") < stages.index("solve")
+    fr = [f for f, _ in calls]
+    assert fr == sorted(fr) and fr[-1] == 1.0
+
+
+def test_large_input_uses_the_scalable_solver_with_features(tmp_path):
+    w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)
+    p, n = sphere_points(1500, seed=3)
+    m = nkf_model.reconstruct(p, n, method="nkf", weights=w, resolution=40, device="cpu", max_centres=1000)
+    assert m.stats["solver"] == "falkon"
+    closed, volume = _closed_and_outward(m)
+    assert closed and volume > 0
+
+
+def test_bad_weights_raise_a_clear_error(tmp_path, sphere500):
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not weights at all")
+    with pytest.raises(WeightsError, match="not a valid safetensors file"):
+        nkf_model.reconstruct(*sphere500, method="nkf", weights=bad)
+    with pytest.raises(WeightsError, match="does not exist"):
+        nkf_model.reconstruct(*sphere500, method="nkf", weights=tmp_path / "missing.safetensors")
+
+
+def test_default_method_follows_the_shipped_weights():
+    assert DEFAULT_METHOD == ("nkf" if has_default_weights() else "splines")
+
+
+@pytest.mark.skipif(not has_default_weights(), reason="this checkout ships no trained weights")
+def test_shipped_weights_reconstruct_a_closed_sphere(sphere500):
+    p, n = sphere500
+    m = nkf_model.reconstruct(p, n, method="nkf", resolution=64, device="cpu")
+    closed, volume = _closed_and_outward(m)
+    assert closed and volume > 0
+    assert abs(volume - 4 / 3 * np.pi) < 0.15 * 4 / 3 * np.pi
+    s, _ = sample_surface(m.vertices, m.faces, 20000, np.random.default_rng(0))
+    assert np.abs(np.linalg.norm(s, axis=1) - 1.0).mean() < 0.01
+    ref = sphere_points(20000, seed=9)[0]
+    assert chamfer_l1(s, ref) < 0.02
+
+
+def _write_cloud(path, p, n):
+    from plyfile import PlyData, PlyElement
+
+    arr = np.zeros(len(p), dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")])
+    for i, k in enumerate("xyz"):
+        arr[k] = p[:, i]
+        arr["n" + k] = n[:, i]
+    PlyData([PlyElement.describe(arr, "vertex")]).write(str(path))
+
+
+def test_cli_weights(tmp_path, capsys, sphere500):
+    src = tmp_path / "in.ply"
+    _write_cloud(src, *sphere500)
+    w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)
+    out = tmp_path / "out.ply"
+    code = main(["reconstruct", str(src), str(out), "--method", "nkf", "--weights", str(w), "--resolution", "32",
+                 "--quiet", "--device", "cpu"])
+    assert code == 0 and out.exists()
+    v, f = read_mesh(out)
+    assert len(f) > 100
+    capsys.readouterr()
+    out2 = tmp_path / "out2.ply"
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"\x00" * 64)
+    code = main(["reconstruct", str(src), str(out2), "--method", "nkf", "--weights", str(bad)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and not out2.exists()
+    assert len(err) == 1 and err[0].startswith("nkf: error:") and str(bad) in err[0]
