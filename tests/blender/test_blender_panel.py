@@ -138,7 +138,8 @@ def test_nkf_method_shows_why_it_is_unavailable(bpy_module, ball):
     if available:
         assert not layout.alerts()
     else:
-        assert f"NKF unavailable: {why}" == " ".join(layout.alerts())
+        # The panel wraps long alerts (a path may be cut inside a word): compare without the breaks.
+        assert "".join(f"NKF unavailable: {why}".split()) == "".join(" ".join(layout.alerts()).split())
 
 
 def test_last_run_time_and_triangles_after_a_reconstruction(bpy_module, ball):
