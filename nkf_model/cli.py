@@ -88,7 +88,8 @@ def _parser() -> argparse.ArgumentParser:
                    help=f"reduce larger inputs to at most N points by voxel-grid averaging "
                         f"(default {DEFAULT_REDUCE_TO:,}; 0: never)")
     s.add_argument("--solver", choices=SOLVERS, default="auto",
-                   help="'auto' (default): exact, Falkon or partition of unity by input size")
+                   help="'auto' (default): exact up to 3,000 points, else partition of unity; "
+                        "'falkon': Nystrom centres")
     s.add_argument("--memory-budget", type=float, default=None, metavar="GB",
                    help="refuse to start if the estimated memory exceeds GB gigabytes "
                         "(default: 60%% of this machine's memory, at most 16)")

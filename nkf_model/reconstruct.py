@@ -40,12 +40,12 @@ METHODS = ("splines", "nkf")
 DEFAULT_METHOD = "nkf" if has_default_weights() else "splines"
 DEFAULT_LAM = 1e-10
 DEFAULT_RESOLUTION = 128
-# Up to this many constraints (2 per point) the solve is exact; beyond it, Falkon with this many
-# Nystrom centres. See docs/benchmarks.md for the trade-off of this number against IoU and time.
+# Up to this many constraints (2 per point, so 3,000 points) the solve is exact; beyond it, a partition
+# of unity of small exact solves (nkf_model.pou). On 12 validation meshes PoU matched the exact solve
+# at 2,500 and 4,000 points (IoU within 0.005) in less time, and beat Falkon with this many Nystrom
+# centres at 10,000 points (0.901 against 0.893 IoU, 3.5x faster); see docs/benchmarks.md. Falkon
+# stays available as solver="falkon", with max_centres centres.
 DEFAULT_CENTRES = 6000
-# From this many points on, the solve is a partition of unity of small exact solves (nkf_model.pou),
-# which keeps the detail of every point; Falkon with DEFAULT_CENTRES centres smooths it away.
-POU_FROM = 20_000
 # Larger inputs are reduced by voxel-grid averaging to at most this many points (docs/scans.md).
 DEFAULT_REDUCE_TO = 300_000
 NORMALS_MODES = ("auto", "given", "estimate")
@@ -142,8 +142,8 @@ def reconstruct(
         Offset of the constraints along the normals, as a fraction of the bounding box's longest
         side. Default: 0.01 up to 3,000 points, then shrinking with the point spacing.
     max_centres : int
-        Largest exact solve (in constraints, 2 per point); up to :data:`POU_FROM` points, larger
-        inputs use this many Nystrom centres.
+        Largest exact solve (in constraints, 2 per point); larger inputs use the partition of unity
+        (``solver="auto"``), and ``solver="falkon"`` uses this many Nystrom centres.
     seed : int
         Seed for the choice of Nystrom centres and of thinned patches.
     normals_mode : {"auto", "given", "estimate"}
@@ -170,8 +170,9 @@ def reconstruct(
         Inputs with more points than this are reduced to at most this many by voxel-grid
         averaging (see :mod:`nkf_model.reduce`); ``None`` never reduces.
     solver : {"auto", "dense", "falkon", "pou"}
-        ``"auto"``: exact up to ``max_centres`` constraints, Falkon up to :data:`POU_FROM`
-        points, then the partition of unity of local solves (:mod:`nkf_model.pou`).
+        ``"auto"``: exact up to ``max_centres`` constraints, then the partition of unity of local
+        exact solves (:mod:`nkf_model.pou`). ``"falkon"``: Nystrom centres with a preconditioned
+        conjugate gradient.
     memory_budget : float, optional
         Bytes the run may use; if :func:`nkf_model.budget.estimate` predicts more, the call
         raises :class:`~nkf_model.errors.MemoryBudgetError` before any large allocation. Default:
@@ -378,11 +379,7 @@ def choose_solver(n_points: int, max_centres: int, solver: str = "auto") -> str:
     """The solver ``reconstruct`` uses for ``n_points`` oriented points."""
     if solver != "auto":
         return solver
-    if 2 * n_points <= max_centres:
-        return "dense"
-    if n_points < POU_FROM:
-        return "falkon"
-    return "pou"
+    return "dense" if 2 * n_points <= max_centres else "pou"
 
 
 def check_scan_settings(normals_mode, normals, solver, reduce_to, trim, min_piece) -> None:

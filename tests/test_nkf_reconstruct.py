@@ -50,6 +50,11 @@ def test_large_input_uses_the_scalable_solver_with_features(tmp_path):
     w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)
     p, n = sphere_points(1500, seed=3)
     m = nkf_model.reconstruct(p, n, method="nkf", weights=w, resolution=40, device="cpu", max_centres=1000)
+    assert m.stats["solver"] == "pou"
+    closed, volume = _closed_and_outward(m)
+    assert closed and volume > 0
+    m = nkf_model.reconstruct(p, n, method="nkf", weights=w, resolution=40, device="cpu", max_centres=1000,
+                              solver="falkon")
     assert m.stats["solver"] == "falkon"
     closed, volume = _closed_and_outward(m)
     assert closed and volume > 0

@@ -21,7 +21,8 @@ def test_estimate_is_cheap_and_grows_with_the_job():
     assert e.solver == "pou" and not e.reduced and e.seconds > 0 and e.peak_bytes > 0
     small = nkf_model.estimate(1_000, resolution=128)
     assert small.solver == "dense" and small.seconds < e.seconds and small.peak_bytes < e.peak_bytes
-    assert nkf_model.estimate(10_000, resolution=256).solver == "falkon"
+    assert nkf_model.estimate(10_000, resolution=256).solver == "pou"
+    assert nkf_model.estimate(3_000, resolution=256).solver == "dense"
     big = nkf_model.estimate(1_000_000, resolution=256, estimate_normals=True)
     assert big.reduced and big.points_solved < big.points_in and big.estimate_normals
     assert nkf_model.estimate(100_000, resolution=512).seconds > e.seconds

@@ -13,7 +13,7 @@ from nkf_model.engines import TorchEngine, cpu_engine
 from nkf_model.kernel import homogeneous
 from nkf_model.normalise import Normalisation
 from nkf_model.pou import fit_pou, patch_spacing
-from nkf_model.reconstruct import POU_FROM, choose_solver
+from nkf_model.reconstruct import choose_solver
 from nkf_model.reduce import voxel_for_count, voxel_reduce
 
 
@@ -29,8 +29,9 @@ def torus_fit():
 
 def test_solver_choice():
     assert choose_solver(1000, 6000) == "dense"
-    assert choose_solver(10_000, 6000) == "falkon"
-    assert choose_solver(POU_FROM, 6000) == "pou"
+    assert choose_solver(3000, 6000) == "dense"
+    assert choose_solver(3001, 6000) == "pou"
+    assert choose_solver(10_000, 6000, "falkon") == "falkon"
     assert choose_solver(500, 6000, "pou") == "pou"
 
 
