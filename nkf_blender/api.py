@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import bpy
 
-from . import runner
+from . import prefs, runner
 from .errors import UserError
-from .job import Settings
+from .job import NORMALS_MODES, ORIENTATIONS, Settings
 from .methods import DEVICE_IDS, METHOD_IDS, default_method
 from .settings import DEFAULT_LAMBDA, DEFAULT_MAX_POINTS, DEFAULT_RESOLUTION
 
@@ -41,6 +41,13 @@ def _device(value) -> str:
     return v
 
 
+def _choice(name: str, value, allowed) -> str:
+    v = str(value).lower()
+    if v not in allowed:
+        raise UserError(f"{name} must be one of {', '.join(repr(a) for a in allowed)}, got {value!r}")
+    return v
+
+
 def reconstruct_object(
     obj: bpy.types.Object,
     *,
@@ -49,9 +56,15 @@ def reconstruct_object(
     resolution: int = DEFAULT_RESOLUTION,
     max_points: int = DEFAULT_MAX_POINTS,
     device: str = "auto",
+    normals: str = "auto",
+    orientation: str = "outward",
+    trim: float | None = None,
+    min_piece: float = 0.0,
+    colors: bool = True,
+    memory_budget_gb: float | None = None,
     context=None,
 ) -> bpy.types.Object:
-    """Reconstruct a surface from ``obj``'s oriented points; return the new mesh object.
+    """Reconstruct a surface from ``obj``'s points; return the new mesh object.
 
     Parameters
     ----------
@@ -67,6 +80,21 @@ def reconstruct_object(
     max_points : int
         Use a seeded random subset above this many points; 0 uses all.
     device : {"auto", "cpu", "gpu"}
+    normals : {"auto", "given", "estimate"}
+        ``"auto"``: the object's normals when it has them, else estimated; ``"given"``: the
+        object must have normals; ``"estimate"``: estimated even when it has some.
+    orientation : {"outward", "up", "viewpoint"}
+        Which way estimated normals point; ``"viewpoint"``: towards the scene camera.
+    trim : float, optional
+        For open scans: cut the surface farther than this many point spacings from every point
+        (``nkf_model.trim.SCAN_TRIM`` = 4 suits scans); ``None`` keeps the closed surface.
+    min_piece : float
+        Drop connected pieces under this fraction of the area (scans: 0.002); 0 keeps all.
+    colors : bool
+        Carry the object's POINT colour attribute (e.g. ``Col``) onto the mesh as ``Col``.
+    memory_budget_gb : float, optional
+        Refuse runs estimated above this many GiB; default: the add-on preference, else 60 % of
+        the memory (at most 16 GiB).
     context : bpy.types.Context, optional
         Default ``bpy.context``; its view layer gets the new object selected and active.
 
@@ -84,14 +112,25 @@ def reconstruct_object(
     """
     if not isinstance(obj, bpy.types.Object):
         raise UserError(f"expected a bpy.types.Object, got {type(obj).__name__}")
+    context = context or bpy.context
+    if memory_budget_gb is not None and not float(memory_budget_gb) > 0:
+        raise UserError(f"memory_budget_gb must be > 0, got {memory_budget_gb!r}")
     settings = Settings(
         method=_method(method),
         lam=float(regularization),
         resolution=int(resolution),
         max_points=int(max_points),
         device=_device(device),
+        normals_mode=_choice("normals", normals, NORMALS_MODES),
+        orientation=_choice("orientation", orientation, ORIENTATIONS),
+        trim=None if trim is None else float(trim),
+        min_piece=float(min_piece),
+        colors=bool(colors),
+        memory_budget=(
+            int(float(memory_budget_gb) * prefs.GIB) if memory_budget_gb is not None else prefs.memory_budget(context)
+        ),
     )
-    ob = runner.run_sync(context or bpy.context, obj, settings)
+    ob = runner.run_sync(context, obj, settings)
     if ob is None:  # only a cancel event can get here, and nothing sets one in this path
         raise UserError("the reconstruction was cancelled")
     return ob

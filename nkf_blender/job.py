@@ -19,13 +19,25 @@ STAGE_LABELS = {
     "start": "Starting",
     "subsample": "Subsampling",
     "normalise": "Normalising",
+    "reduce": "Reducing",
+    "normals": "Estimating normals",
     "augment": "Augmenting",
     "features": "Features",
     "solve": "Solving",
     "evaluate": "Evaluating",
     "mesh": "Meshing",
+    "clean": "Trimming",
+    "colors": "Colours",
     "done": "Done",
 }
+
+
+# The scan defaults of nkf_model.trim (SCAN_TRIM, SCAN_MIN_PIECE), repeated here so that the
+# add-on registers even when nkf_model's dependencies are missing; a test keeps them equal.
+SCAN_TRIM = 4.0
+SCAN_MIN_PIECE = 0.002
+NORMALS_MODES = ("auto", "given", "estimate")
+ORIENTATIONS = ("outward", "up", "viewpoint")
 
 
 @dataclass(frozen=True)
@@ -35,6 +47,14 @@ class Settings:
     ``method`` ``"nkf"`` or ``"splines"``; ``lam`` >= 0; ``resolution`` grid cells per side;
     ``max_points`` cap on the points used (a seeded random subset above it, 0 = no cap);
     ``device`` ``"auto"``, ``"cpu"`` or ``"cuda"``.
+
+    Scans: ``normals_mode`` ``"auto"`` (the object's normals when it has them, else estimated),
+    ``"given"`` (the object must have normals) or ``"estimate"`` (always estimated);
+    ``orientation`` of estimated normals, ``"outward"``, ``"up"`` or ``"viewpoint"`` (towards the
+    scene camera); ``trim`` point spacings beyond which the surface is cut (``None``: closed
+    surface); ``min_piece`` smallest piece kept, as a fraction of the area (0 keeps all);
+    ``colors`` carry the object's point colours onto the mesh; ``memory_budget`` bytes a run may
+    use (``None``: nkf_model's default, 60 % of the memory, at most 16 GiB).
     """
 
     method: str = "splines"
@@ -43,19 +63,33 @@ class Settings:
     max_points: int = 0
     device: str = "auto"
     seed: int = 0
+    normals_mode: str = "auto"
+    orientation: str = "outward"
+    trim: float | None = None
+    min_piece: float = 0.0
+    colors: bool = True
+    memory_budget: int | None = None
 
 
-def subsample(points: np.ndarray, normals: np.ndarray, max_points: int, seed: int = 0):
-    """At most ``max_points`` rows, chosen at random with ``seed`` and kept in their order."""
+def subsample(points: np.ndarray, normals, max_points: int, seed: int = 0, colors=None):
+    """At most ``max_points`` rows, chosen at random with ``seed`` and kept in their order.
+
+    ``normals`` and ``colors`` (either may be ``None``) are indexed like ``points``. Returns
+    ``(points, normals, colors)``.
+    """
     n = len(points)
     if not max_points or n <= max_points:
-        return points, normals
+        return points, normals, colors
     idx = np.sort(np.random.default_rng(seed).choice(n, size=max_points, replace=False))
-    return points[idx], normals[idx]
+    return points[idx], None if normals is None else normals[idx], None if colors is None else colors[idx]
 
 
 class ReconstructJob:
-    """Reconstruct a mesh from ``points`` (N, 3) and ``normals`` (N, 3), float32 or float64.
+    """Reconstruct a mesh from ``points`` (N, 3) and ``normals`` (N, 3) or ``None``, float32 or float64.
+
+    ``colors`` (N, 3) uint8 sRGB or ``None``; ``viewpoints`` (K, 3) scanner positions in the frame
+    of ``points`` (for ``orientation="viewpoint"``) or ``None``. With ``normals=None`` the normals
+    are estimated (``settings.orientation``).
 
     Use ``start()`` to run on a daemon worker thread, or ``run()`` to run in the calling thread.
     ``on_progress(fraction, stage)``, if given, is called from the thread that runs the work.
@@ -63,9 +97,11 @@ class ReconstructJob:
     (``error`` holds one line for the user), or ``"cancelled"``.
     """
 
-    def __init__(self, points, normals, settings: Settings, on_progress=None):
+    def __init__(self, points, normals, settings: Settings, on_progress=None, *, colors=None, viewpoints=None):
         self.points = points
         self.normals = normals
+        self.colors = colors
+        self.viewpoints = viewpoints
         self.settings = settings
         self._listener = on_progress
         self.cancel_event = threading.Event()
@@ -152,15 +188,23 @@ class ReconstructJob:
             import nkf_model
 
             self._on_progress(0.0, "subsample")
-            pts, nrm = subsample(self.points, self.normals, s.max_points, s.seed)
+            pts, nrm, rgb = subsample(self.points, self.normals, s.max_points, s.seed, self.colors)
             self.points_used = len(pts)
             if len(pts) < len(self.points):
                 self.notes.append(f"used a random {len(pts):,} of {len(self.points):,} points (Max Points)")
+            estimate = nrm is None
             mesh = nkf_model.reconstruct(
                 pts, nrm, method=s.method, lam=s.lam, resolution=s.resolution, device=s.device,
                 progress=self._on_progress, cancel=self.cancel_event, seed=s.seed,
+                normals_mode="estimate" if estimate else "given",
+                orientation=s.orientation if estimate else None,
+                viewpoints=self.viewpoints if estimate and s.orientation == "viewpoint" else None,
+                colors=rgb if s.colors else None, trim=s.trim, min_piece=s.min_piece,
+                memory_budget=s.memory_budget,
             )
             self.notes.extend(mesh.stats.get("warnings", []))
+            if estimate:
+                self.notes.append(f"normals estimated (oriented {s.orientation})")
             if self.cancel_event.is_set():
                 self.state = CANCELLED
             else:
@@ -189,7 +233,7 @@ class ReconstructJob:
                 f"a Python package is missing ({exc}); install the dependencies in the add-on preferences"
             )
         elif isinstance(exc, MemoryError):
-            self.error = "out of memory: lower Resolution or Max Points"
+            self.error = "out of memory: lower Resolution or Max Points, or set a Memory Budget in the preferences"
         else:
             traceback.print_exc()
             self.error = f"unexpected error ({type(exc).__name__}: {exc}); see the system console"

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import runner, settings
+from . import prefs, runner, settings
 from .errors import UserError
 from .job import CANCELLED, FAILED, RUNNING
 
@@ -41,14 +41,17 @@ class OBJECT_OT_nkf_reconstruct(bpy.types.Operator):
     bl_label = "Reconstruct Surface"
     bl_options = {"REGISTER", "UNDO"}
 
-    # Properties (method, regularization, resolution, max_points, device) are added by
-    # settings.prepare_classes at registration, with the method's default decided then.
+    # Properties (method, regularization, resolution, max_points, device, and for scans
+    # normals_mode, orientation, use_scan, trim, min_piece, use_colors) are added by
+    # settings.prepare_classes at registration, with the method's default decided then. The memory
+    # budget comes from the add-on preferences.
 
     def execute(self, context):
         obj = context.active_object
         on_progress = _print_stages() if bpy.app.background else None
         try:
-            ob = runner.run_sync(context, obj, settings.to_settings(self), on_progress=on_progress)
+            s = settings.to_settings(self, prefs.memory_budget(context))
+            ob = runner.run_sync(context, obj, s, on_progress=on_progress)
         except UserError as exc:
             self.report({"ERROR"}, f"NKF: {exc}")
             return {"CANCELLED"}
@@ -63,7 +66,7 @@ class OBJECT_OT_nkf_reconstruct(bpy.types.Operator):
             return self.execute(context)
         obj = context.active_object
         try:
-            self._key = runner.start(context, obj, settings.to_settings(self))
+            self._key = runner.start(context, obj, settings.to_settings(self, prefs.memory_budget(context)))
         except UserError as exc:
             self.report({"ERROR"}, f"NKF: {exc}")
             return {"CANCELLED"}

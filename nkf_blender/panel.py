@@ -1,16 +1,19 @@
 """The sidebar panel: View3D > Sidebar > NKF.
 
-Shows the active object's point count and where its normals come from, the parameters, Reconstruct
-or (while running) live progress with the stage and Cancel, the last run's time and triangle count,
-and an actionable message when packages are missing or the object cannot be used. ``draw`` reads
-only cheap state (no arrays), so it can run on every redraw.
+Shows the active object's point count, where its normals come from (or a notice that they will be
+estimated) and its colours, the parameters (with the scan options: normals mode, orientation, trim,
+minimum piece, colours), the time and memory estimate for this object and these settings,
+Reconstruct or (while running) live progress with the stage and Cancel, the last run's time and
+triangle count, and an actionable message when packages are missing, the object cannot be used or
+the estimate exceeds the memory budget. ``draw`` reads only cheap state (no arrays; the estimate is
+cached), so it can run on every redraw.
 """
 
 from __future__ import annotations
 
 import bpy
 
-from . import deps, methods, ops, runner, source
+from . import deps, estimates, methods, ops, prefs, runner, settings, source
 from .prefs import ADDON, wrapped
 
 WRAP = 38
@@ -30,24 +33,62 @@ def _deps_box(layout) -> bool:
     return st.ready
 
 
+def _normals_line(box, info, s, context) -> str:
+    """Say where the normals come from; return a problem that blocks the run, else ``""``."""
+    if info.normals is not None:
+        box.label(text=f"Normals: {info.normals}", icon="CHECKMARK")
+        return ""
+    orient = s.orientation.lower()
+    if s.normals_mode == "ESTIMATE":
+        box.label(text=f"Normals: estimated ({orient})", icon="INFO")
+    else:
+        wrapped(box, f"No normals: they will be estimated ({orient})", icon="INFO", width=WRAP)
+    if s.orientation == "VIEWPOINT" and context.scene.camera is None:
+        return "Orientation Viewpoint needs a scene camera (where the scanner was)"
+    return ""
+
+
+def _estimate_line(layout, info, s, context) -> str:
+    """The time and memory estimate; return the over-budget message, else ``""``."""
+    job_settings = settings.to_settings(s, prefs.memory_budget(context))
+    try:
+        look = estimates.outlook(info.count, job_settings, info.normals is None)
+    except ImportError:
+        return ""
+    col = layout.column()
+    col.alert = bool(look.problem)
+    wrapped(col, f"Estimate: {look.summary}", icon="MEMORY", width=WRAP)
+    if look.problem:
+        wrapped(col, look.problem, icon="ERROR", width=WRAP)
+    return look.problem
+
+
 def draw_panel(layout, context) -> None:
     ready = _deps_box(layout)
     obj = context.active_object
     s = context.scene.nkf_settings
 
     box = layout.box()
-    info = source.describe(obj)
+    info = source.describe(obj, s.normals_mode.lower())
+    problem = info.problem
     if obj is None:
         box.label(text="No active object", icon="INFO")
-        wrapped(box, "Select a point cloud: a mesh or point cloud object with normals.", width=WRAP)
+        wrapped(box, "Select a point cloud: a mesh or point cloud object.", width=WRAP)
     else:
         box.label(text=f"{obj.name}: {info.count:,} points", icon="POINTCLOUD_DATA")
-        if info.problem:
+        if problem:
             col = box.column()
             col.alert = True
-            wrapped(col, info.problem, icon="ERROR", width=WRAP)
+            wrapped(col, problem, icon="ERROR", width=WRAP)
         else:
-            box.label(text=f"Normals: {info.normals}", icon="CHECKMARK")
+            problem = _normals_line(box, info, s, context)
+            if problem:
+                col = box.column()
+                col.alert = True
+                wrapped(col, problem, icon="ERROR", width=WRAP)
+            if info.colors is not None:
+                use = "carried onto the mesh" if s.use_colors else "off"
+                box.label(text=f"Colours: '{info.colors}' ({use})", icon="COLOR")
 
     col = layout.column()
     col.use_property_split = True
@@ -65,6 +106,23 @@ def draw_panel(layout, context) -> None:
     col.prop(s, "max_points")
     col.prop(s, "device")
 
+    col = layout.column(heading="Scan")
+    col.use_property_split = True
+    col.use_property_decorate = False
+    col.prop(s, "normals_mode")
+    sub = col.column()
+    sub.enabled = s.normals_mode != "GIVEN"
+    sub.prop(s, "orientation")
+    col.prop(s, "use_scan")
+    sub = col.column()
+    sub.enabled = s.use_scan
+    sub.prop(s, "trim")
+    sub.prop(s, "min_piece")
+    col.prop(s, "use_colors")
+
+    if ready and obj is not None and not info.problem:
+        problem = _estimate_line(layout, info, s, context) or problem
+
     act = runner.active_job(obj)
     if act is not None:
         frac, label = runner.progress(act.source_uid)
@@ -73,9 +131,9 @@ def draw_panel(layout, context) -> None:
     else:
         row = layout.row()
         row.scale_y = 1.4
-        row.enabled = ready and obj is not None and not info.problem
+        row.enabled = ready and obj is not None and not problem
         op = row.operator(ops.OBJECT_OT_nkf_reconstruct.bl_idname, text="Reconstruct", icon="MESH_ICOSPHERE")
-        for name in ("method", "regularization", "resolution", "max_points", "device"):
+        for name in settings.PROPERTY_NAMES:
             setattr(op, name, getattr(s, name))
         others = runner.running_count()
         if others:

@@ -14,12 +14,13 @@ import os
 import textwrap
 
 import bpy
-from bpy.props import EnumProperty, StringProperty
+from bpy.props import EnumProperty, FloatProperty, StringProperty
 
 from . import deps, installer, methods
 
 ADDON = __package__
 POLL_INTERVAL = 0.5
+GIB = 2**30
 
 
 class InstallState:
@@ -45,6 +46,13 @@ def get_prefs(context=None):
     context = context or bpy.context
     addon = context.preferences.addons.get(ADDON)
     return addon.preferences if addon is not None else None
+
+
+def memory_budget(context=None) -> int | None:
+    """The Memory Budget preference in bytes, or None for nkf_model's default (the setting is 0)."""
+    p = get_prefs(context)
+    gb = float(p.memory_budget) if p is not None else 0.0
+    return int(gb * GIB) if gb > 0 else None
 
 
 def apply_paths(prefs) -> None:
@@ -231,6 +239,17 @@ class NKFPreferences(bpy.types.AddonPreferences):
         subtype="DIR_PATH",
         description="Install only from the wheel files in this folder (nothing is downloaded)",
     )
+    memory_budget: FloatProperty(
+        name="Memory Budget (GB)",
+        default=0.0,
+        min=0.0,
+        soft_max=64.0,
+        precision=2,
+        description=(
+            "Refuse a reconstruction whose estimated memory exceeds this many GB (GiB), before it "
+            "starts; 0 uses 60 % of this computer's memory, at most 16 GB"
+        ),
+    )
 
     def draw(self, context):
         draw_preferences(self, self.layout, context)
@@ -278,6 +297,10 @@ def draw_preferences(prefs, layout, context) -> None:
     box = layout.box()
     box.label(text="Already have PyTorch?", icon="FILE_FOLDER")
     box.prop(prefs, "torch_path")
+
+    box = layout.box()
+    box.label(text="Limits", icon="MEMORY")
+    box.prop(prefs, "memory_budget")
 
 
 CLASSES = (NKF_OT_install_dependencies, NKF_OT_cancel_install, NKF_OT_check_dependencies, NKFPreferences)

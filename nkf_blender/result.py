@@ -4,6 +4,8 @@ The mesh data are written with ``foreach_set`` on the ``position`` and ``.corner
 attributes (about 0.3 s for a million triangles). Vertices are in the source object's local
 coordinates, computed in float64 from ``Mesh.center + Mesh.local_vertices`` before the single cast
 to float32, and the new object takes the source's world matrix, so the two line up exactly.
+``Mesh.colors`` (when the points had colours) become a BYTE_COLOR POINT attribute ``Col``, the
+active and render colour attribute, so the viewport's Attribute colour mode and renders show it.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import bpy
 import numpy as np
 
 SUFFIX = "_nkf"
+COLOR_ATTRIBUTE = "Col"
 
 
 def mesh_data(name: str, mesh) -> bpy.types.Mesh:
@@ -29,7 +32,20 @@ def mesh_data(name: str, mesh) -> bpy.types.Mesh:
     me.polygons.foreach_set("loop_start", np.arange(0, 3 * nf, 3, dtype=np.int32))
     me.update(calc_edges=True)
     me.shade_smooth()
+    colors = getattr(mesh, "colors", None)
+    if colors is not None and len(colors) == nv:
+        add_colors(me, colors)
     return me
+
+
+def add_colors(me, colors) -> None:
+    """Write (V, 3) uint8 sRGB ``colors`` as the mesh's active BYTE_COLOR POINT attribute ``Col``."""
+    rgba = np.ones((len(colors), 4), dtype=np.float32)
+    rgba[:, :3] = np.asarray(colors, dtype=np.float32) / 255.0
+    attr = me.color_attributes.new(COLOR_ATTRIBUTE, "BYTE_COLOR", "POINT")
+    attr.data.foreach_set("color_srgb", rgba.ravel())
+    me.color_attributes.active_color = attr
+    me.color_attributes.default_color_name = attr.name
 
 
 TRANSFORM_ATTRIBUTES = (

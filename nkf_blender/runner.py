@@ -19,8 +19,9 @@ import time
 from dataclasses import dataclass
 
 import bpy
+import numpy as np
 
-from . import deps, result, source
+from . import deps, estimates, result, source
 from .errors import UserError
 from .job import CANCELLED, DONE, FAILED, RUNNING, ReconstructJob, Settings
 
@@ -112,8 +113,13 @@ def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[Reconst
         st = deps.refresh()
     if not st.ready:
         raise UserError(st.message())
-    pts, nrm, _where = source.read_points(obj)
-    job = ReconstructJob(pts, nrm, settings, on_progress=on_progress)
+    src = source.read_points(obj, settings.normals_mode, colors=settings.colors)
+    estimate_normals = src.normals is None
+    viewpoints = viewpoint(context, obj) if estimate_normals and settings.orientation == "viewpoint" else None
+    check_budget(len(src.points), settings, estimate_normals)
+    job = ReconstructJob(
+        src.points, src.normals, settings, on_progress=on_progress, colors=src.colors, viewpoints=viewpoints
+    )
     act = Active(
         job=job,
         source_uid=key_of(obj),
@@ -122,6 +128,32 @@ def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[Reconst
         collections=[c.name for c in obj.users_collection],
     )
     return job, act
+
+
+def viewpoint(context, obj):
+    """The scene camera's world position in ``obj``'s local frame, (1, 3) float64: the scanner
+    position that estimated normals point towards (orientation Viewpoint)."""
+    cam = context.scene.camera if context.scene is not None else None
+    if cam is None:
+        raise UserError(
+            "Orientation is Viewpoint but the scene has no camera: add a camera where the scanner "
+            "was (and make it the scene camera), or choose Outward or Up"
+        )
+    try:
+        local = obj.matrix_world.inverted() @ cam.matrix_world.translation
+    except ValueError:
+        raise UserError(f"'{obj.name}' has a flat (non-invertible) transform; apply or fix its scale") from None
+    return np.array([tuple(local)], dtype=np.float64)
+
+
+def check_budget(count: int, settings: Settings, estimate_normals: bool) -> None:
+    """Raise :class:`UserError` when the estimated memory of the run exceeds the memory budget."""
+    try:
+        look = estimates.outlook(count, settings, estimate_normals)
+    except ImportError:
+        return  # nkf_model itself will say what is missing
+    if look.problem:
+        raise UserError(look.problem)
 
 
 def start(context, obj, settings: Settings) -> int:

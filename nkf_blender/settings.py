@@ -3,14 +3,20 @@
 ``method`` (NKF, Neural Splines), ``regularization`` (the paper's lambda, shown as "Lambda"),
 ``resolution``, ``max_points`` and ``device``. The method's default is decided at registration:
 NKF when ``nkf_model`` says it can run here, else Neural Splines.
+
+For scans: ``normals_mode`` (Auto, Given, Estimate), ``orientation`` of estimated normals
+(Outward, Up, Viewpoint: towards the scene camera), ``use_scan`` (an open surface: trim it where
+it runs farther than ``trim`` point spacings from the points, and drop pieces under ``min_piece``
+of the area; the defaults are nkf_model's scan defaults) and ``use_colors``. The memory budget is
+a preference of the machine (:mod:`nkf_blender.prefs`), not a scene setting.
 """
 
 from __future__ import annotations
 
 import bpy
-from bpy.props import EnumProperty, FloatProperty, IntProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
-from .job import Settings
+from .job import SCAN_MIN_PIECE, SCAN_TRIM, Settings
 from .methods import DEVICE_IDS, METHOD_IDS
 
 METHOD_ITEMS = [
@@ -21,6 +27,16 @@ DEVICE_ITEMS = [
     ("AUTO", "Auto", "A CUDA GPU when PyTorch sees one, else the CPU"),
     ("CPU", "CPU", "Always the CPU"),
     ("GPU", "GPU", "A CUDA GPU (needs the CUDA build of PyTorch)"),
+]
+NORMALS_ITEMS = [
+    ("AUTO", "Auto", "The object's normals when it has them, else estimate them"),
+    ("GIVEN", "Given", "The object's normals ('normal' attribute or vertex normals); an error without them"),
+    ("ESTIMATE", "Estimate", "Estimate normals from the points (PCA over 16 neighbours), ignoring the object's"),
+]
+ORIENTATION_ITEMS = [
+    ("OUTWARD", "Outward", "Estimated normals point away from the object (closed objects seen from all around)"),
+    ("UP", "Up", "Estimated normals point upwards (terrain, aerial scans)"),
+    ("VIEWPOINT", "Viewpoint", "Estimated normals point towards the scene camera (put it where the scanner was)"),
 ]
 DEFAULT_LAMBDA = 1e-10
 DEFAULT_RESOLUTION = 128
@@ -52,20 +68,58 @@ def annotations(default_method: str) -> dict:
         "device": EnumProperty(
             name="Device", items=DEVICE_ITEMS, default="AUTO", description="Where the kernel runs",
         ),
+        "normals_mode": EnumProperty(
+            name="Normals", items=NORMALS_ITEMS, default="AUTO",
+            description="Where the normals come from",
+        ),
+        "orientation": EnumProperty(
+            name="Orientation", items=ORIENTATION_ITEMS, default="OUTWARD",
+            description="Which way estimated normals point",
+        ),
+        "use_scan": BoolProperty(
+            name="Scan (Open Surface)", default=False,
+            description=(
+                "The points are an open scan (a room, a facade, a statue on a plinth): cut the surface "
+                "where it runs far from the points and drop small pieces, instead of closing it"
+            ),
+        ),
+        "trim": FloatProperty(
+            name="Trim Distance", default=SCAN_TRIM, min=0.5, soft_max=20.0, precision=1,
+            description="Cut the surface farther than this many point spacings from every point",
+        ),
+        "min_piece": FloatProperty(
+            name="Min Piece", default=SCAN_MIN_PIECE, min=0.0, max=0.99, soft_max=0.1, precision=4, step=0.1,
+            description="Drop connected pieces with less than this fraction of the total area (0 keeps all)",
+        ),
+        "use_colors": BoolProperty(
+            name="Colours", default=True,
+            description="Carry the points' colour attribute (e.g. 'Col' from a PLY) onto the mesh",
+        ),
     }
 
 
-PROPERTY_NAMES = ("method", "regularization", "resolution", "max_points", "device")
+PROPERTY_NAMES = (
+    "method", "regularization", "resolution", "max_points", "device",
+    "normals_mode", "orientation", "use_scan", "trim", "min_piece", "use_colors",
+)
 
 
-def to_settings(props) -> Settings:
-    """A :class:`~nkf_blender.job.Settings` from anything with the five properties."""
+def to_settings(props, memory_budget: int | None = None) -> Settings:
+    """A :class:`~nkf_blender.job.Settings` from anything with the properties of
+    :data:`PROPERTY_NAMES`; ``memory_budget`` in bytes (``None``: nkf_model's default)."""
+    scan = bool(props.use_scan)
     return Settings(
         method=METHOD_IDS[props.method],
         lam=float(props.regularization),
         resolution=int(props.resolution),
         max_points=int(props.max_points),
         device=DEVICE_IDS[props.device],
+        normals_mode=props.normals_mode.lower(),
+        orientation=props.orientation.lower(),
+        trim=float(props.trim) if scan else None,
+        min_piece=float(props.min_piece) if scan else 0.0,
+        colors=bool(props.use_colors),
+        memory_budget=memory_budget,
     )
 
 

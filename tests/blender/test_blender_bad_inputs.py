@@ -7,18 +7,18 @@ import pytest
 from blender_helpers import ext, fibonacci_sphere, import_ply, snapshot, world_vertices, write_ply
 
 
-def _expect_error(bpy, pattern: str) -> None:
+def _expect_error(bpy, pattern: str, op_args=None, api_args=None) -> None:
     """Run the operator and the Python function: both fail with ``pattern``, nothing changes."""
     before = snapshot(bpy)
     with pytest.raises(RuntimeError, match=pattern) as info:
-        bpy.ops.object.nkf_reconstruct(method="SPLINES", resolution=32)
+        bpy.ops.object.nkf_reconstruct(method="SPLINES", resolution=32, **(op_args or {}))
     assert str(info.value).startswith("Error: NKF: ")
     assert "\n" not in str(info.value).strip()  # one line, no traceback
     assert snapshot(bpy) == before
     obj = bpy.context.active_object
     if obj is not None:
         with pytest.raises(ext("errors").UserError, match=pattern):
-            ext("api").reconstruct_object(obj, method="splines", resolution=32)
+            ext("api").reconstruct_object(obj, method="splines", resolution=32, **(api_args or {}))
         assert snapshot(bpy) == before
 
 
@@ -43,11 +43,12 @@ def test_camera(scene, bpy_module):
     _expect_error(bpy, "is a camera object; select a mesh or point cloud")
 
 
-def test_point_cloud_without_normals(scene, bpy_module, tmp_path):
+def test_point_cloud_without_normals_in_given_mode(scene, bpy_module, tmp_path):
     bpy = bpy_module
     pts, _ = fibonacci_sphere(200, 1.0)
     import_ply(bpy, write_ply(tmp_path / "bare.ply", pts))
-    _expect_error(bpy, "'bare' has no normals: NKF needs oriented points")
+    _expect_error(bpy, "'bare' has no normals, and Normals is set to Given: choose Auto or Estimate",
+                  op_args={"normals_mode": "GIVEN"}, api_args={"normals": "given"})
 
 
 def _mesh_with_normals(bpy, name, pts, nrm):
