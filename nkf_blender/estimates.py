@@ -48,15 +48,16 @@ def resolve_budget(memory_budget: int | None) -> int:
     return int(default_memory_budget())
 
 
-def outlook(count: int, settings: Settings, estimate_normals: bool) -> Outlook:
+def outlook(count: int, settings: Settings, estimate_normals: bool, colors: bool) -> Outlook:
     """The estimate for ``count`` points of an object under ``settings``.
 
-    ``estimate_normals``: whether the object's normals will be estimated. Raises ImportError when
-    nkf_model cannot be imported (missing packages).
+    ``estimate_normals``: whether the object's normals will be estimated; ``colors``: whether
+    colours will be carried (the object has them and ``settings.colors`` is on). Raises
+    ImportError when nkf_model cannot be imported (missing packages).
     """
     return _outlook(
         int(count), int(settings.max_points), int(settings.resolution), bool(estimate_normals),
-        bool(settings.colors), settings.trim is not None, resolve_budget(settings.memory_budget),
+        bool(colors), settings.trim is not None, resolve_budget(settings.memory_budget),
     )
 
 

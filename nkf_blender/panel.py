@@ -52,7 +52,8 @@ def _estimate_line(layout, info, s, context) -> str:
     """The time and memory estimate; return the over-budget message, else ``""``."""
     job_settings = settings.to_settings(s, prefs.memory_budget(context))
     try:
-        look = estimates.outlook(info.count, job_settings, info.normals is None)
+        look = estimates.outlook(info.count, job_settings, info.normals is None,
+                                 s.use_colors and info.colors is not None)
     except ImportError:
         return ""
     col = layout.column()

@@ -116,7 +116,7 @@ def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[Reconst
     src = source.read_points(obj, settings.normals_mode, colors=settings.colors)
     estimate_normals = src.normals is None
     viewpoints = viewpoint(context, obj) if estimate_normals and settings.orientation == "viewpoint" else None
-    check_budget(len(src.points), settings, estimate_normals)
+    check_budget(len(src.points), settings, estimate_normals, src.colors is not None)
     job = ReconstructJob(
         src.points, src.normals, settings, on_progress=on_progress, colors=src.colors, viewpoints=viewpoints
     )
@@ -146,10 +146,10 @@ def viewpoint(context, obj):
     return np.array([tuple(local)], dtype=np.float64)
 
 
-def check_budget(count: int, settings: Settings, estimate_normals: bool) -> None:
+def check_budget(count: int, settings: Settings, estimate_normals: bool, colors: bool) -> None:
     """Raise :class:`UserError` when the estimated memory of the run exceeds the memory budget."""
     try:
-        look = estimates.outlook(count, settings, estimate_normals)
+        look = estimates.outlook(count, settings, estimate_normals, colors)
     except ImportError:
         return  # nkf_model itself will say what is missing
     if look.problem:

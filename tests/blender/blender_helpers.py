@@ -31,18 +31,12 @@ def fibonacci_sphere(n: int, radius: float = 1.0, center=(0.0, 0.0, 0.0)):
     return d * radius + np.asarray(center, dtype=np.float64), d
 
 
-def write_ply(path: Path, points, normals=None) -> Path:
-    """A binary PLY point cloud: x y z, plus nx ny nz when ``normals`` is given."""
-    if normals is not None:
-        from nkf_model.fileio import write_point_cloud
+def write_ply(path: Path, points, normals=None, colors=None) -> Path:
+    """A binary PLY point cloud: x y z, plus nx ny nz when ``normals`` is given, plus red green blue
+    (uchar) when ``colors`` (N, 3) uint8 is given."""
+    from nkf_model.fileio import write_point_cloud
 
-        return write_point_cloud(path, points, normals)
-    pts = np.asarray(points, dtype="<f4")
-    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\n" + "".join(
-        f"property float {c}\n" for c in "xyz"
-    ) + "end_header\n"
-    path.write_bytes(header.encode("ascii") + pts.tobytes())
-    return path
+    return write_point_cloud(path, points, normals, colors)
 
 
 def import_ply(bpy, path: Path):

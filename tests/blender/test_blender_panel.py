@@ -49,19 +49,44 @@ def test_no_active_object(scene, bpy_module):
     (rec,) = layout.operators(RECONSTRUCT)
     assert not rec.enabled
     assert not layout.operators(CANCEL)
-    assert {"method", "regularization", "resolution", "max_points", "device"} <= set(layout.props())
+    assert set(ext("settings").PROPERTY_NAMES) <= set(layout.props())
 
 
-def test_point_cloud_without_normals(scene, bpy_module, tmp_path):
+def test_point_cloud_without_normals_gets_a_notice_and_can_run(scene, bpy_module, tmp_path):
     bpy = bpy_module
     pts, _ = fibonacci_sphere(250, 1.0)
     import_ply(bpy, write_ply(tmp_path / "bare.ply", pts))
     layout = draw(bpy)
     text = layout.joined()
     assert "bare: 250 points" in text
-    assert "has no normals" in " ".join(layout.alerts())
+    assert "No normals: they will be estimated (outward)" in text
+    assert "normals estimated" in text  # the estimate counts the normal estimation
+    assert not layout.alerts()
+    (rec,) = layout.operators(RECONSTRUCT)
+    assert rec.enabled and rec.op_props["normals_mode"] == "AUTO"
+    bpy.context.scene.nkf_settings.orientation = "UP"
+    assert "No normals: they will be estimated (up)" in draw(bpy).joined()
+
+
+def test_point_cloud_without_normals_in_given_mode_is_blocked(scene, bpy_module, tmp_path):
+    bpy = bpy_module
+    pts, _ = fibonacci_sphere(250, 1.0)
+    import_ply(bpy, write_ply(tmp_path / "bare.ply", pts))
+    bpy.context.scene.nkf_settings.normals_mode = "GIVEN"
+    layout = draw(bpy)
+    assert "has no normals, and Normals is set to Given" in " ".join(layout.alerts())
     (rec,) = layout.operators(RECONSTRUCT)
     assert not rec.enabled
+
+
+def test_viewpoint_orientation_without_a_camera_is_blocked(scene, bpy_module, tmp_path):
+    bpy = bpy_module
+    pts, _ = fibonacci_sphere(250, 1.0)
+    import_ply(bpy, write_ply(tmp_path / "bare.ply", pts))
+    bpy.context.scene.nkf_settings.orientation = "VIEWPOINT"
+    layout = draw(bpy)
+    assert "needs a scene camera" in " ".join(layout.alerts())
+    assert not layout.operators(RECONSTRUCT)[0].enabled
 
 
 def test_idle_with_a_usable_point_cloud(bpy_module, ball):
