@@ -1,4 +1,5 @@
-"""NKF for Blender: reconstruct a surface mesh from the active point cloud.
+"""NKF for Blender: reconstruct a surface mesh from the active point cloud (oriented or not,
+closed or an open scan, with or without colours).
 
 Operator ``bpy.ops.object.nkf_reconstruct`` (modal with progress in the UI, synchronous in
 headless Blender), panel View3D > Sidebar > NKF, add-on preferences that install PyTorch and the
@@ -6,8 +7,8 @@ other compiled dependencies, and a Python function, :func:`api.reconstruct_objec
 
 The reconstruction itself is the ``nkf_model`` package, bundled as a wheel. Module map:
 
-* ``deps``, ``installer``, ``methods``, ``job``, ``errors``: no ``bpy``; worker-thread logic,
-  dependency checks and the pip installer;
+* ``deps``, ``installer``, ``methods``, ``job``, ``estimates``, ``errors``: no ``bpy``; worker-thread
+  logic, time and memory estimates, dependency checks and the pip installer;
 * ``source`` (read points), ``result`` (build the mesh), ``runner`` (jobs on the main thread),
   ``settings``, ``ops``, ``panel``, ``prefs``, ``api``: the Blender side.
 """
