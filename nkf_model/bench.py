@@ -6,7 +6,8 @@ needs ``libusb-1.0-0``). It prints Markdown tables:
 1. quality and cost per (points, noise, method): IoU, Chamfer-L1, normal consistency, F-score
    (ConvONet protocol, see :mod:`nkf_model.metrics`), wall time of the reconstruction call, and
    its peak memory (resident-set growth over the call, sampled every 5 ms);
-2. ``--tradeoff``: solver size (Nystrom centres) against IoU and time at 10,000 points;
+2. ``--tradeoff``: Falkon's size (Nystrom centres) against IoU and time at 10,000 points, beside the default
+   partition-of-unity solver;
 3. ``--growth``: grid points and kernel evaluations from resolution 64 to 512.
 
 ``--methods nkf splines poisson`` adds the learned kernel (``--weights PATH``, default the shipped
@@ -327,23 +328,25 @@ def tradeoff(entries, cache, centres_list, n=10000, res=256, log=print) -> str:
         "| Nystrom centres | solver | mean IoU | mean Chamfer-L1 | mean time (s) | mean solve (s) |",
         "|---:|---|---:|---:|---:|---:|",
     ]
-    for c in centres_list:
+    # Falkon with each number of centres, then the default solver (partition of unity) for comparison.
+    for c in list(centres_list) + [None]:
+        kw = {"max_centres": c, "solver": "falkon"} if c is not None else {}
         ious, cds, ts, ss = [], [], [], []
         solver = ""
         for e in entries:
             ref = reference(e, cache)
             v0, f0 = corpus.load(e)
             pts, nrm = corpus.sample_input(v0, f0, n, 0.0, corpus.stable_seed("input", e.name, n, 0.0))
-            v, f, stats, dt, mem, err = measure(run_splines, pts, nrm, res, max_centres=c)
+            v, f, stats, dt, mem, err = measure(run_splines, pts, nrm, res, **kw)
             s = score(v, f, ref, corpus.stable_seed("score", e.name, n, 0.0, "splines"))
             ious.append(s["iou"])
             cds.append(s["chamfer_l1"])
             ts.append(dt)
             ss.append(stats.get("timings", {}).get("solve", float("nan")))
             solver = stats.get("solver", "failed")
-            log(f"  centres={c:6d} {e.name:40s} IoU {s['iou']:.3f} t {dt:.2f}s")
+            log(f"  centres={c or '-'!s:>6} {e.name:40s} IoU {s['iou']:.3f} t {dt:.2f}s")
         lines.append(
-            f"| {c} | {solver} | {statistics.mean(ious):.4f} | {statistics.mean(cds):.5f} "
+            f"| {c if c is not None else '-'} | {solver} | {statistics.mean(ious):.4f} | {statistics.mean(cds):.5f} "
             f"| {statistics.mean(ts):.2f} | {statistics.mean(ss):.2f} |"
         )
     return "\n".join(lines)
