@@ -24,8 +24,11 @@ Two steps, both on the CPU with SciPy:
       them agree and fail there); at sharp edges (normals over 60 degrees apart) the edge is taken
       as convex.
    c. Clean-up: an undecided piece (joined by confident edges) flips as a whole when its edges to
-      decided points vote against it, then single points flip where their neighbours and views
-      clearly disagree with them (iterated conditional modes).
+      decided points vote against it; then all confident edges and seeds vote at once in one
+      sparse least-squares fit of real-valued signs (:func:`_harmonic_signs`, a signed harmonic
+      propagation: one wrong edge no longer flips a whole branch of the tree); then single points
+      flip where their neighbours and views clearly disagree with them (iterated conditional
+      modes).
 
 Noise: the noise level of the cloud (the flattest quarter's plane-fit residual) widens the depth
 tolerance of the views and keeps offsets along the normals that are within the noise from being
@@ -441,6 +444,41 @@ def _seeded_propagation(g, points, normals, seed_sign, noise=None):
     return sign, int(n_pieces)
 
 
+def _harmonic_signs(g, points, normals, sign, seed, noise=None, check: Check = None):
+    """Signs (N,) from a global least-squares fit over the confident edges, seeded by the views.
+
+    The spanning tree takes each point's sign along one path from a seed, so one wrong edge on that
+    path flips everything behind it. Here every confident edge (cost below
+    :data:`HARMONIC_COST`) and every seed votes at once: the real-valued ``s`` minimising::
+
+        sum_ij w_ij (s_i - r_ij s_j)^2 + sum_i c_i (s_i - v_i)^2
+
+        w_ij = exp(-cost_ij / HARMONIC_COST), r_ij = edge_relation(i, j)
+        c_i = HARMONIC_SEED for seeds (v_i = the views' sign), 1e-6 * HARMONIC_SEED elsewhere
+        (v_i = ``sign``, so pieces without seeds or confident edges keep their sign)
+
+    solves one sparse, symmetric positive definite system (a signed graph Laplacian plus a
+    diagonal), and the new sign is the sign of ``s``: a signed version of harmonic label
+    propagation, where a point's sign comes from all the paths to all seeds, weighted.
+    """
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import spsolve
+
+    g = g.tocoo()
+    keep = g.data < HARMONIC_COST
+    i, j = g.row[keep], g.col[keep]
+    rel = edge_relation(points, normals, i, j, noise)
+    w = np.exp(-g.data[keep] / HARMONIC_COST)
+    a = coo_matrix((w * rel, (i, j)), shape=g.shape).tocsr()
+    degree = np.asarray(abs(a).sum(axis=1)).ravel()
+    c = np.where(seed != 0, HARMONIC_SEED, 1e-6 * HARMONIC_SEED)
+    v = np.where(seed != 0, seed, sign)
+    if check is not None:
+        check()
+    s = spsolve((diags(degree + c) - a).tocsc(), c * v)
+    return np.where(s >= 0, 1.0, -1.0)
+
+
 N_VIEWS = 64  # orthographic views for "outward" (all around) and "up" (upper half)
 VIEW_POINTS = 40_000  # points drawn into the views at most
 # A point's sign is taken from the views when the votes agree this much (|sum| / sum of |votes|);
@@ -450,6 +488,8 @@ VOTE_AGREEMENT = 0.5
 # this: points seen from only one or two views are mostly seen through gaps between the discs.
 VOTE_WEIGHT = 3.0
 TOL_NOISE = 1.5  # depth tolerance of the views, in noise levels (on top of half a spacing)
+HARMONIC_COST = 0.1  # edges cheaper than this join the global sign fit (_harmonic_signs)
+HARMONIC_SEED = 0.01  # weight of a seed's sign in that fit, against 1 for a confident edge
 SIG_NOISE = 1.5  # offsets along the normals below this many noise levels are noise
 NOISE_QUANTILE = 0.25  # the noise level is this quantile of the points' plane-fit residuals
 SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
@@ -533,6 +573,7 @@ def orient_normals(
     g = _graph(p, nrm, tree, k, check, noise)
     sign, pieces = _seeded_propagation(g, p, nrm, seed, noise)
     sign = _flip_pieces(g, p, nrm, sign, seed, check, noise=noise)
+    sign = _harmonic_signs(g, p, nrm, sign, seed, noise, check)
     sign = _consensus(g, p, nrm, sign, votes, check, noise=noise)
     info = OrientationInfo(orientation=orientation, pieces=pieces,
                            seeded=int((seed != 0).sum()), spacing=spacing)

@@ -107,3 +107,24 @@ def test_reconstruct_estimates_missing_normals_and_says_so():
         nkf_model.reconstruct(p, None, normals_mode="given")
     with pytest.raises(InvalidParameterError, match="normals_mode"):
         nkf_model.reconstruct(p, None, normals_mode="guess")
+
+
+def test_global_sign_fit_outvotes_a_wrong_branch():
+    # A sphere whose spanning tree went wrong on a cap of unseeded points: the signs of the cap
+    # are flipped. The least-squares fit over confident edges restores them from the seeds (6,000
+    # points: dense enough that most neighbours on the curved surface are confident edges).
+    from scipy.spatial import cKDTree
+
+    from nkf_model.normals import _graph, _harmonic_signs
+
+    p, n = sphere_points(6000, seed=5)
+    e, _ = pca_normals(p, 16)
+    truth = np.where(np.sum(e * n, axis=1) > 0, 1.0, -1.0)
+    rng = np.random.default_rng(0)
+    cap = p[:, 2] > 0.5
+    seed = np.where(~cap & (rng.random(len(p)) < 0.2), truth, 0.0)
+    wrong = np.where(cap, -truth, truth)
+    g = _graph(p, e, cKDTree(p), 10, None)
+    fixed = _harmonic_signs(g, p, e, wrong, seed)
+    assert (wrong == truth).mean() < 0.9
+    assert (fixed == truth).mean() > 0.99
