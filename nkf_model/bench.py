@@ -20,6 +20,7 @@ Reference samples and occupancies of each validation mesh are cached in ``--cach
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import statistics
@@ -375,6 +376,39 @@ def growth(entry, n=1000, resolutions=(64, 128, 256, 512), log=print) -> str:
     return "\n".join(lines)
 
 
+def save_rows(rows, path: Path, meshes, split: str) -> Path:
+    """Write the rows of :func:`main_table` (with the machine and the meshes) to a JSON file."""
+    doc = {"machine": machine(), "split": split, "meshes": list(meshes),
+           "rows": [{"label": label, "resolution": res, "noise": noise, "method": method, "results": results}
+                    for label, res, noise, method, results in rows]}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, default=float))
+    return path
+
+
+def merge(paths, plot: Path | None = None, out: Path | None = None) -> int:
+    """Print one main table (and plot) from JSON files of :func:`save_rows` over the same meshes."""
+    docs = [json.loads(Path(p).read_text()) for p in paths]
+    meshes = docs[0]["meshes"]
+    for p, d in zip(paths, docs):
+        if d["meshes"] != meshes:
+            raise SystemExit(f"{p}: other meshes than {paths[0]}; merge runs over the same meshes only")
+    order = {"nkf": 0, "splines": 1, "poisson": 2}
+    rows = [(r["label"], r["resolution"], r["noise"], r["method"], r["results"]) for d in docs for r in d["rows"]]
+    rows.sort(key=lambda r: ("half" in r[0], int(r[0].split()[0]), r[2], order.get(r[3], 9)))
+    machines = sorted({d["machine"] for d in docs})
+    text = "\n".join([f"Machine: {'; '.join(machines)}", "",
+                      f"Meshes: {len(meshes)} ({docs[0]['split']} split), merged from {len(docs)} runs", "",
+                      format_main(rows), ""])
+    if plot:
+        plot_iou(rows, plot, title=f"{len(meshes)} {docs[0]['split']} meshes of the corpus")
+    print(text)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m nkf_model.bench", description=__doc__.split("\n")[0])
     ap.add_argument("--points", type=int, nargs="+", default=[1000, 10000])
@@ -394,8 +428,15 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-main", action="store_true")
     ap.add_argument("--cache", type=Path, default=Path(".bench-cache"))
     ap.add_argument("--out", type=Path, default=None, help="also write the tables to this Markdown file")
+    ap.add_argument("--rows", type=Path, default=None,
+                    help="also write the main table's per-mesh results to this JSON file (for --merge)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="run nothing: print (and --plot) the main table of runs saved with --rows, "
+                         "e.g. point counts run in parallel processes")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
+    if args.merge:
+        return merge(args.merge, args.plot, args.out)
     warnings.filterwarnings("ignore", message=".*TBB.*")
     log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
 
@@ -408,6 +449,8 @@ def main(argv=None) -> int:
         rows = main_table(entries, args.points, args.noise, args.methods, args.cache, args.resolution, log,
                           weights=args.weights, half=args.half)
         parts += [f"Meshes: {len(entries)} ({args.split} split)", "", format_main(rows), ""]
+        if args.rows:
+            save_rows(rows, args.rows, meshes=[e.name for e in entries], split=args.split)
         if args.plot:
             plot_iou(rows, args.plot, title=f"{len(entries)} {args.split} meshes of the corpus")
     if args.tradeoff is not None:
