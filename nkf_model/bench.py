@@ -8,7 +8,11 @@ needs ``libusb-1.0-0``). It prints Markdown tables:
    its peak memory (resident-set growth over the call, sampled every 5 ms);
 2. ``--tradeoff``: Falkon's size (Nystrom centres) against IoU and time at 10,000 points, beside the default
    partition-of-unity solver;
-3. ``--growth``: grid points and kernel evaluations from resolution 64 to 512.
+3. ``--growth``: grid points and kernel evaluations from resolution 64 to 512;
+4. ``--overhead N``: the extra wall time of ``nkf`` over ``splines`` at 1,000 points, resolution 128.
+
+``--rows FILE.json`` saves the main table's per-mesh results; ``--merge A.json B.json ...`` prints (and
+plots) one table from runs made separately, for example one process per point count.
 
 ``--methods nkf splines poisson`` adds the learned kernel (``--weights PATH``, default the shipped
 weights), ``--half 3000`` adds half-surface inputs (points from one side of a random plane through the
@@ -20,6 +24,7 @@ Reference samples and occupancies of each validation mesh are cached in ``--cach
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import statistics
@@ -352,6 +357,31 @@ def tradeoff(entries, cache, centres_list, n=10000, res=256, log=print) -> str:
     return "\n".join(lines)
 
 
+def overhead(entries, weights=None, n=1000, res=128, repeats=3, log=print) -> str:
+    """Wall time of ``nkf`` against ``splines`` on the same inputs (the median of ``repeats`` calls
+    each, alternating), and the learned kernel's extra cost per input."""
+    rows = []
+    for e in entries:
+        v0, f0 = corpus.load(e)
+        pts, nrm = corpus.sample_input(v0, f0, n, 0.0, corpus.stable_seed("input", e.name, n, 0.0))
+        ts = {"splines": [], "nkf": []}
+        for _ in range(repeats):
+            for method in ts:
+                t0 = time.perf_counter()
+                reconstruct(pts, nrm, method=method, resolution=res, device="cpu", weights=weights)
+                ts[method].append(time.perf_counter() - t0)
+        t_s, t_n = statistics.median(ts["splines"]), statistics.median(ts["nkf"])
+        rows.append((t_s, t_n))
+        log(f"  overhead {e.name:40s} splines {t_s:.3f}s nkf {t_n:.3f}s (+{t_n - t_s:.3f}s)")
+    extra = [t_n - t_s for t_s, t_n in rows]
+    return "\n".join([
+        "| inputs | splines, mean (s) | nkf, mean (s) | extra, mean (s) | extra, max (s) |",
+        "|---:|---:|---:|---:|---:|",
+        f"| {len(rows)} | {statistics.mean(r[0] for r in rows):.3f} | {statistics.mean(r[1] for r in rows):.3f} "
+        f"| {statistics.mean(extra):.3f} | {max(extra):.3f} |",
+    ])
+
+
 def growth(entry, n=1000, resolutions=(64, 128, 256, 512), log=print) -> str:
     v0, f0 = corpus.load(entry)
     pts, nrm = corpus.sample_input(v0, f0, n, 0.0, corpus.stable_seed("input", entry.name, n, 0.0))
@@ -375,6 +405,39 @@ def growth(entry, n=1000, resolutions=(64, 128, 256, 512), log=print) -> str:
     return "\n".join(lines)
 
 
+def save_rows(rows, path: Path, meshes, split: str) -> Path:
+    """Write the rows of :func:`main_table` (with the machine and the meshes) to a JSON file."""
+    doc = {"machine": machine(), "split": split, "meshes": list(meshes),
+           "rows": [{"label": label, "resolution": res, "noise": noise, "method": method, "results": results}
+                    for label, res, noise, method, results in rows]}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, default=float))
+    return path
+
+
+def merge(paths, plot: Path | None = None, out: Path | None = None) -> int:
+    """Print one main table (and plot) from JSON files of :func:`save_rows` over the same meshes."""
+    docs = [json.loads(Path(p).read_text()) for p in paths]
+    meshes = docs[0]["meshes"]
+    for p, d in zip(paths, docs):
+        if d["meshes"] != meshes:
+            raise SystemExit(f"{p}: other meshes than {paths[0]}; merge runs over the same meshes only")
+    order = {"nkf": 0, "splines": 1, "poisson": 2}
+    rows = [(r["label"], r["resolution"], r["noise"], r["method"], r["results"]) for d in docs for r in d["rows"]]
+    rows.sort(key=lambda r: ("half" in r[0], int(r[0].split()[0]), r[2], order.get(r[3], 9)))
+    machines = sorted({d["machine"] for d in docs})
+    text = "\n".join([f"Machine: {'; '.join(machines)}", "",
+                      f"Meshes: {len(meshes)} ({docs[0]['split']} split), merged from {len(docs)} runs", "",
+                      format_main(rows), ""])
+    if plot:
+        plot_iou(rows, plot, title=f"{len(meshes)} {docs[0]['split']} meshes of the corpus")
+    print(text)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m nkf_model.bench", description=__doc__.split("\n")[0])
     ap.add_argument("--points", type=int, nargs="+", default=[1000, 10000])
@@ -391,23 +454,34 @@ def main(argv=None) -> int:
                     help="also print solver size vs IoU/time at 10,000 points for these centre counts")
     ap.add_argument("--tradeoff-limit", type=int, default=12, help="meshes used for the trade-off table")
     ap.add_argument("--growth", action="store_true", help="also print kernel evaluations vs resolution")
+    ap.add_argument("--overhead", type=int, default=0, metavar="MESHES",
+                    help="also time nkf against splines at 1,000 points, resolution 128, on this many meshes")
     ap.add_argument("--skip-main", action="store_true")
     ap.add_argument("--cache", type=Path, default=Path(".bench-cache"))
     ap.add_argument("--out", type=Path, default=None, help="also write the tables to this Markdown file")
+    ap.add_argument("--rows", type=Path, default=None,
+                    help="also write the main table's per-mesh results to this JSON file (for --merge)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="run nothing: print (and --plot) the main table of runs saved with --rows, "
+                         "e.g. point counts run in parallel processes")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
+    if args.merge:
+        return merge(args.merge, args.plot, args.out)
     warnings.filterwarnings("ignore", message=".*TBB.*")
     log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
 
     entries = [e for e in corpus.manifest() if e.split == args.split]
     if args.limit:
         entries = entries[: args.limit]
-    warm_up(args.weights if "nkf" in args.methods else False)
+    warm_up(args.weights if ("nkf" in args.methods or args.overhead) else False)
     parts = [f"Machine: {machine()}", ""]
     if not args.skip_main:
         rows = main_table(entries, args.points, args.noise, args.methods, args.cache, args.resolution, log,
                           weights=args.weights, half=args.half)
         parts += [f"Meshes: {len(entries)} ({args.split} split)", "", format_main(rows), ""]
+        if args.rows:
+            save_rows(rows, args.rows, meshes=[e.name for e in entries], split=args.split)
         if args.plot:
             plot_iou(rows, args.plot, title=f"{len(entries)} {args.split} meshes of the corpus")
     if args.tradeoff is not None:
@@ -415,6 +489,9 @@ def main(argv=None) -> int:
         sub = entries[: args.tradeoff_limit]
         parts += [f"Solver size at 10,000 points, resolution 256, {len(sub)} meshes:", "",
                   tradeoff(sub, args.cache, cl, log=log), ""]
+    if args.overhead:
+        parts += [f"Extra time of nkf over splines (1,000 points, resolution 128, median of 3 calls each, "
+                  f"{args.overhead} meshes):", "", overhead(entries[: args.overhead], args.weights, log=log), ""]
     if args.growth:
         parts += [f"Kernel evaluations against resolution (1,000 points, {entries[0].name}):", "",
                   growth(entries[0], log=log), ""]
