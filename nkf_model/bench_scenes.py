@@ -165,7 +165,8 @@ def run_large(entries, sizes, resolution, cache, log=print):
                 variants.append(("all points", None))
             for label, reduce_to in variants:
                 def fn(reduce_to=reduce_to, pts=pts, nrm=nrm):
-                    return reconstruct(pts, nrm, resolution=resolution, device="cpu", reduce_to=reduce_to)
+                    return reconstruct(pts, nrm, method="splines", resolution=resolution, device="cpu",
+                                       reduce_to=reduce_to)
 
                 m, dt, mem, err = _measure(fn)
                 if m is None:
@@ -228,7 +229,7 @@ def run_estimates(log=print):
         pred = estimate(n, resolution=res, estimate_normals=est_normals)
 
         def fn(pts=pts, nrm=nrm, res=res, est_normals=est_normals):
-            return reconstruct(pts, None if est_normals else nrm, resolution=res, device="cpu")
+            return reconstruct(pts, None if est_normals else nrm, method="splines", resolution=res, device="cpu")
 
         m, dt, mem, err = _measure(fn)
         stages = "" if m is None else ", ".join(f"{k} {v:.1f}" for k, v in m.stats["timings"].items())

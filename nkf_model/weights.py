@@ -113,8 +113,8 @@ def load_weights(path=None):
     path = Path(path) if path is not None else DEFAULT_WEIGHTS
     if path is DEFAULT_WEIGHTS and not path.is_file():
         raise DefaultWeightsMissingError(
-            f"this installation has no default weights for method 'nkf' ({path}); "
-            "pass weights=PATH (--weights PATH) or use method 'splines'"
+            f"this installation has no default weights for method 'nkf' ({path}); train them with "
+            "'nkf train' and pass weights=PATH (--weights PATH), or use method 'splines'"
         )
     key = None
     try:
