@@ -1,7 +1,7 @@
 """Write the data-driven parts of ``nkf_model/weights/MODEL_CARD.md`` from a weights file.
 
     python scripts/make_model_card.py --weights nkf_model/weights/nkf_default.safetensors \
-        --run runs/nkf --notes docs/nkf-model-notes.md --bench docs/nkf-benchmark.md \
+        --run runs/nkf --notes docs/nkf.md --bench docs/nkf-benchmark.md \
         --ablation docs/nkf-ablation.md --out nkf_model/weights/MODEL_CARD.md
 
 The card gets: the file and its checksum, the network's config, how and how long it was trained
