@@ -405,6 +405,15 @@ def growth(entry, n=1000, resolutions=(64, 128, 256, 512), log=print) -> str:
     return "\n".join(lines)
 
 
+def report(text: str, out: Path | None = None) -> int:
+    """Print a benchmark's Markdown ``text`` and, with ``out``, also write it there; exit status 0."""
+    print(text)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+    return 0
+
+
 def save_rows(rows, path: Path, meshes, split: str) -> Path:
     """Write the rows of :func:`main_table` (with the machine and the meshes) to a JSON file."""
     doc = {"machine": machine(), "split": split, "meshes": list(meshes),
@@ -431,11 +440,7 @@ def merge(paths, plot: Path | None = None, out: Path | None = None) -> int:
                       format_main(rows), ""])
     if plot:
         plot_iou(rows, plot, title=f"{len(meshes)} {docs[0]['split']} meshes of the corpus")
-    print(text)
-    if out:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text + "\n")
-    return 0
+    return report(text, out)
 
 
 def main(argv=None) -> int:
@@ -496,11 +501,7 @@ def main(argv=None) -> int:
         parts += [f"Kernel evaluations against resolution (1,000 points, {entries[0].name}):", "",
                   growth(entries[0], log=log), ""]
     text = "\n".join(parts)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
-    return 0
+    return report(text, args.out)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from . import corpus
-from .bench import machine, reference, score, warm_up
+from .bench import machine, reference, report, score, warm_up
 from .normals import estimate_normals
 from .reconstruct import reconstruct
 
@@ -107,11 +107,7 @@ def main(argv=None) -> int:
     warm_up()
     rows = run(entries, args.points, args.noise, args.resolution, args.cache, log)
     text = "\n".join([f"Machine: {machine()}", "", format_table(rows, args.points, args.noise, args.resolution)])
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
-    return 0
+    return report(text, args.out)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from . import corpus, metrics, scenes
-from .bench import PeakRSS, machine, reference, score, warm_up
+from .bench import PeakRSS, machine, reference, report, score, warm_up
 from .reconstruct import DEFAULT_REDUCE_TO, reconstruct
 from .trim import SCAN_MIN_PIECE, SCAN_TRIM
 
@@ -293,11 +293,7 @@ def main(argv=None) -> int:
     if args.estimates:
         parts += ["Estimates (nkf_model.estimate) against measurements:", "", run_estimates(log), ""]
     text = "\n".join(parts)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
-    return 0
+    return report(text, args.out)
 
 
 if __name__ == "__main__":
