@@ -27,40 +27,10 @@ import math
 import numba as nb
 import numpy as np
 
-from ._numba_kernels import _C
+from ._numba_kernels import _angle
 
-(c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12, c13, c14, c15, c16, c17) = _C
 PI = math.pi
 _OPTS = dict(nogil=True, cache=True, fastmath={"contract"})
-
-
-@nb.njit(inline="always", fastmath={"contract"})
-def _angle(d2):
-    """Angle t in [0, pi] between unit vectors with |u - v|^2 = d2 (same polynomial as ``_g``)."""
-    d2 = min(max(d2, 0.0), 4.0)
-    e2 = 4.0 - d2
-    m = min(d2, e2)
-    z = 0.25 * m
-    p = c17
-    p = p * z + c16
-    p = p * z + c15
-    p = p * z + c14
-    p = p * z + c13
-    p = p * z + c12
-    p = p * z + c11
-    p = p * z + c10
-    p = p * z + c9
-    p = p * z + c8
-    p = p * z + c7
-    p = p * z + c6
-    p = p * z + c5
-    p = p * z + c4
-    p = p * z + c3
-    p = p * z + c2
-    p = p * z + c1
-    p = p * z + c0
-    h = math.sqrt(m) * p
-    return h if d2 <= 2.0 else PI - h
 
 
 @nb.njit(parallel=True, **_OPTS)

@@ -48,11 +48,10 @@ _OPTS = dict(nogil=True, cache=True, fastmath=_FAST)
 
 
 @nb.njit(inline="always", fastmath={"contract"})
-def _g(d2):
-    """sin t + 2 (pi - t) cos t for d2 = |u - v|^2 of unit vectors u, v."""
+def _angle(d2):
+    """Angle t in [0, pi] between unit vectors u, v with d2 = |u - v|^2 (clamped to [0, 4])."""
     d2 = min(max(d2, 0.0), 4.0)
-    e2 = 4.0 - d2
-    m = min(d2, e2)  # asin of the smaller half-chord keeps the polynomial on z <= 0.5
+    m = min(d2, 4.0 - d2)  # asin of the smaller half-chord keeps the polynomial on z <= 0.5
     z = 0.25 * m
     p = c17
     p = p * z + c16
@@ -73,8 +72,15 @@ def _g(d2):
     p = p * z + c1
     p = p * z + c0
     h = math.sqrt(m) * p  # = 2 asin(sqrt(m) / 2)
-    t = h if d2 <= 2.0 else PI - h
-    return 0.5 * math.sqrt(d2 * e2) + 2.0 * (PI - t) * (1.0 - 0.5 * d2)
+    return h if d2 <= 2.0 else PI - h
+
+
+@nb.njit(inline="always", fastmath={"contract"})
+def _g(d2):
+    """sin t + 2 (pi - t) cos t for d2 = |u - v|^2 of unit vectors u, v."""
+    d2 = min(max(d2, 0.0), 4.0)
+    t = _angle(d2)
+    return 0.5 * math.sqrt(d2 * (4.0 - d2)) + 2.0 * (PI - t) * (1.0 - 0.5 * d2)
 
 
 @nb.njit(inline="always", fastmath={"contract"})
@@ -103,6 +109,21 @@ def _g_acute(d2):
     return 2.0 * PI - PI * w + math.sqrt(w) * p
 
 
+@nb.njit(inline="always", **_OPTS)
+def _sum4(u0, u1, u2, u3, c0_, c1_, c2_, c3_, beta, j0, j1, acute):
+    """sum_j beta[j] g(|u - c[j]|^2) over centres j0..j1 of 4-D unit vectors given by columns."""
+    s = 0.0
+    for j in range(j0, j1):
+        t0 = u0 - c0_[j]
+        t1 = u1 - c1_[j]
+        t2 = u2 - c2_[j]
+        t3 = u3 - c3_[j]
+        d2 = t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3
+        # A loop-invariant branch: LLVM unswitches this small loop (measured as fast as two loops).
+        s += beta[j] * (_g_acute(d2) if acute else _g(d2))
+    return s
+
+
 @nb.njit(parallel=True, **_OPTS)
 def gsum4(q, c0_, c1_, c2_, c3_, beta, acute):
     """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for 4-D unit vectors; c given by columns.
@@ -110,29 +131,9 @@ def gsum4(q, c0_, c1_, c2_, c3_, beta, acute):
     ``acute``: every pair is at most 90 degrees apart, so the faster :func:`_g_acute` applies.
     """
     nq = q.shape[0]
-    nc = beta.shape[0]
     out = np.empty(nq)
     for i in nb.prange(nq):
-        q0 = q[i, 0]
-        q1 = q[i, 1]
-        q2 = q[i, 2]
-        q3 = q[i, 3]
-        s = 0.0
-        if acute:
-            for j in range(nc):
-                t0 = q0 - c0_[j]
-                t1 = q1 - c1_[j]
-                t2 = q2 - c2_[j]
-                t3 = q3 - c3_[j]
-                s += beta[j] * _g_acute(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
-        else:
-            for j in range(nc):
-                t0 = q0 - c0_[j]
-                t1 = q1 - c1_[j]
-                t2 = q2 - c2_[j]
-                t3 = q3 - c3_[j]
-                s += beta[j] * _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
-        out[i] = s
+        out[i] = _sum4(q[i, 0], q[i, 1], q[i, 2], q[i, 3], c0_, c1_, c2_, c3_, beta, 0, beta.shape[0], acute)
     return out
 
 
@@ -248,67 +249,14 @@ def _row_g12(q, i, ct, buf, acute):
 def gsum12(q, ct, beta, acute):
     """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for 12-D unit vectors; ``ct`` is (12, M)."""
     nq = q.shape[0]
+    nc = ct.shape[1]
     out = np.empty(nq)
     for i in nb.prange(nq):
-        q0 = q[i, 0]
-        q1 = q[i, 1]
-        q2 = q[i, 2]
-        q3 = q[i, 3]
-        q4 = q[i, 4]
-        q5 = q[i, 5]
-        q6 = q[i, 6]
-        q7 = q[i, 7]
-        q8 = q[i, 8]
-        q9 = q[i, 9]
-        q10 = q[i, 10]
-        q11 = q[i, 11]
-        r0 = ct[0]
-        r1 = ct[1]
-        r2 = ct[2]
-        r3 = ct[3]
-        r4 = ct[4]
-        r5 = ct[5]
-        r6 = ct[6]
-        r7 = ct[7]
-        r8 = ct[8]
-        r9 = ct[9]
-        r10 = ct[10]
-        r11 = ct[11]
+        buf = np.empty(nc)
+        _row_g12(q, i, ct, buf, acute)
         s = 0.0
-        if acute:
-            for j in range(ct.shape[1]):
-                t0 = q0 - r0[j]
-                t1 = q1 - r1[j]
-                t2 = q2 - r2[j]
-                t3 = q3 - r3[j]
-                t4 = q4 - r4[j]
-                t5 = q5 - r5[j]
-                t6 = q6 - r6[j]
-                t7 = q7 - r7[j]
-                t8 = q8 - r8[j]
-                t9 = q9 - r9[j]
-                t10 = q10 - r10[j]
-                t11 = q11 - r11[j]
-                d2 = (t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3 + t4 * t4 + t5 * t5
-                      + t6 * t6 + t7 * t7 + t8 * t8 + t9 * t9 + t10 * t10 + t11 * t11)
-                s += beta[j] * _g_acute(d2)
-        else:
-            for j in range(ct.shape[1]):
-                t0 = q0 - r0[j]
-                t1 = q1 - r1[j]
-                t2 = q2 - r2[j]
-                t3 = q3 - r3[j]
-                t4 = q4 - r4[j]
-                t5 = q5 - r5[j]
-                t6 = q6 - r6[j]
-                t7 = q7 - r7[j]
-                t8 = q8 - r8[j]
-                t9 = q9 - r9[j]
-                t10 = q10 - r10[j]
-                t11 = q11 - r11[j]
-                d2 = (t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3 + t4 * t4 + t5 * t5
-                      + t6 * t6 + t7 * t7 + t8 * t8 + t9 * t9 + t10 * t10 + t11 * t11)
-                s += beta[j] * _g(d2)
+        for j in range(nc):
+            s += beta[j] * buf[j]
         out[i] = s
     return out
 

@@ -14,7 +14,7 @@ import math
 import numba as nb
 import numpy as np
 
-from ._numba_kernels import _g, _g_acute
+from ._numba_kernels import _g, _sum4
 
 _OPTS = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
 
@@ -22,6 +22,19 @@ _OPTS = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
 @nb.njit(inline="always")
 def _smooth(u):
     return u * u * (3.0 - 2.0 * u)
+
+
+@nb.njit(inline="always")
+def _cell(x0, x1, x2, lo, h, dims):
+    """Lower corner node (ix, iy, iz) of the grid cell that holds (x0, x1, x2), clamped to the grid,
+    and the fractional position (tx, ty, tz) in it, each in [0, 1]."""
+    fx = (x0 - lo) / h
+    fy = (x1 - lo) / h
+    fz = (x2 - lo) / h
+    ix = min(max(int(math.floor(fx)), 0), dims - 2)
+    iy = min(max(int(math.floor(fy)), 0), dims - 2)
+    iz = min(max(int(math.floor(fz)), 0), dims - 2)
+    return ix, iy, iz, min(max(fx - ix, 0.0), 1.0), min(max(fy - iy, 0.0), 1.0), min(max(fz - iz, 0.0), 1.0)
 
 
 @nb.njit(**_OPTS)
@@ -93,15 +106,7 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step, 
     d = qu.shape[1]
     out = np.empty(nq)
     for i in nb.prange(nq):
-        fx = (x[i, 0] - lo) / h
-        fy = (x[i, 1] - lo) / h
-        fz = (x[i, 2] - lo) / h
-        ix = min(max(int(math.floor(fx)), 0), dims - 2)
-        iy = min(max(int(math.floor(fy)), 0), dims - 2)
-        iz = min(max(int(math.floor(fz)), 0), dims - 2)
-        tx = min(max(fx - ix, 0.0), 1.0)
-        ty = min(max(fy - iy, 0.0), 1.0)
-        tz = min(max(fz - iz, 0.0), 1.0)
+        ix, iy, iz, tx, ty, tz = _cell(x[i, 0], x[i, 1], x[i, 2], lo, h, dims)
         total = 0.0
         for a in range(2):
             wx = _smooth(tx) if a == 1 else _smooth(1.0 - tx)
@@ -120,28 +125,8 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step, 
                     s0 = start[p]
                     acc = 0.0
                     if d == 4:
-                        u0 = qu[i, 0]
-                        u1 = qu[i, 1]
-                        u2 = qu[i, 2]
-                        u3 = qu[i, 3]
-                        c0 = cu[0]
-                        c1 = cu[1]
-                        c2 = cu[2]
-                        c3 = cu[3]
-                        if acute:
-                            for j in range(s0, s0 + m):
-                                t0 = u0 - c0[j]
-                                t1 = u1 - c1[j]
-                                t2 = u2 - c2[j]
-                                t3 = u3 - c3[j]
-                                acc += beta[j] * _g_acute(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
-                        else:
-                            for j in range(s0, s0 + m):
-                                t0 = u0 - c0[j]
-                                t1 = u1 - c1[j]
-                                t2 = u2 - c2[j]
-                                t3 = u3 - c3[j]
-                                acc += beta[j] * _g(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+                        acc = _sum4(qu[i, 0], qu[i, 1], qu[i, 2], qu[i, 3], cu[0], cu[1], cu[2], cu[3], beta,
+                                    s0, s0 + m, acute)
                     else:
                         for j in range(s0, s0 + m):
                             s = 0.0
@@ -161,15 +146,7 @@ def corner_weights(x, lo, h, dims):  # pragma: no cover - compiled
     idx = np.empty((n, 8), dtype=np.int64)
     wts = np.empty((n, 8))
     for i in range(n):
-        fx = (x[i, 0] - lo) / h
-        fy = (x[i, 1] - lo) / h
-        fz = (x[i, 2] - lo) / h
-        ix = min(max(int(math.floor(fx)), 0), dims - 2)
-        iy = min(max(int(math.floor(fy)), 0), dims - 2)
-        iz = min(max(int(math.floor(fz)), 0), dims - 2)
-        tx = min(max(fx - ix, 0.0), 1.0)
-        ty = min(max(fy - iy, 0.0), 1.0)
-        tz = min(max(fz - iz, 0.0), 1.0)
+        ix, iy, iz, tx, ty, tz = _cell(x[i, 0], x[i, 1], x[i, 2], lo, h, dims)
         q = 0
         for a in range(2):
             wx = _smooth(tx) if a == 1 else _smooth(1.0 - tx)
