@@ -108,6 +108,8 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--out", default=None, metavar="DIR", help="run folder (default runs/CONFIG-NAME)")
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     t.add_argument("--max-steps", type=int, default=None, metavar="N", help="stop after N more steps")
+    t.add_argument("--stop-after", type=float, default=None, metavar="MIN",
+                   help="stop this session after MIN minutes of training (checkpointed; --resume continues)")
     t.add_argument("--quiet", action="store_true", help="no progress bar; log lines on stderr instead")
     t.add_argument("--debug", action="store_true", help="show the full traceback on errors")
     return ap

@@ -276,8 +276,11 @@ class Trainer:
 
         cache = Path(self.cfg.data.cache)
         self.log(f"cache: {cache} ({len(self.train_entries)} training meshes, {len(self.holdout_entries)} held out)")
-        self.train_samples = build_cache(self.train_entries, cache, self.cfg.cache, progress=self.progress)
-        self.holdout_samples = build_cache(self.holdout_entries, cache, self.cfg.cache, progress=self.progress)
+        wn_device = self.device if self.device != "cpu" else None
+        self.train_samples = build_cache(self.train_entries, cache, self.cfg.cache, progress=self.progress,
+                                         device=wn_device)
+        self.holdout_samples = build_cache(self.holdout_entries, cache, self.cfg.cache, progress=self.progress,
+                                           device=wn_device)
         from . import corpus
         from .trainset import validation_example
 
@@ -407,7 +410,9 @@ class Trainer:
         return {k: float(np.mean(v)) for k, v in per.items()}
 
     # -- the loop ------------------------------------------------------------------------
-    def run(self, resume: bool = False, max_steps: int | None = None) -> dict:
+    def run(self, resume: bool = False, max_steps: int | None = None, stop_after_s: float | None = None) -> dict:
+        """Train until the config's steps or budget, ``max_steps`` more steps, or ``stop_after_s``
+        seconds of this session (then validate and checkpoint, so that ``resume=True`` continues)."""
         from tqdm import tqdm
 
         from .weights import save_weights
@@ -433,18 +438,21 @@ class Trainer:
         self.log("neural splines on the held-out meshes: " + ", ".join(f"{k} {v:.4f}" for k, v in baseline.items()))
         end = t.steps if max_steps is None else min(t.steps, self.step + max_steps)
         t_wall = time.perf_counter()
+        deadline = None if stop_after_s is None else t_wall + stop_after_s
         bar = tqdm(total=t.steps, initial=self.step, disable=not self.progress, desc="train", unit="step",
                    dynamic_ncols=True)
         window: list = []
         last_val = None
         try:
-            while self.step < end and self.progress_fraction() < 1.0:
+            while self.step < end and self.progress_fraction() < 1.0 and not (
+                    deadline is not None and time.perf_counter() >= deadline):
                 r = self.train_step()
                 now = time.perf_counter()
                 self.elapsed += now - t_wall  # wall time, validation and checkpoints included
                 t_wall = now
                 self.step += 1
-                last = self.step >= end or self.progress_fraction() >= 1.0
+                out_of_time = deadline is not None and now >= deadline
+                last = self.step >= end or self.progress_fraction() >= 1.0 or out_of_time
                 window.append(r["loss"])
                 window = window[-50:]
                 self._csv({"kind": "train", "step": self.step, "elapsed_s": f"{self.elapsed:.1f}",
@@ -559,7 +567,8 @@ def main(args) -> int:
         raise NKFInputError(f"--resume: {out} holds no checkpoint.pt to resume from")
     tr = Trainer(cfg, out, progress=not args.quiet)
     try:
-        res = tr.run(resume=args.resume, max_steps=args.max_steps)
+        stop = None if getattr(args, "stop_after", None) is None else 60.0 * args.stop_after
+        res = tr.run(resume=args.resume, max_steps=args.max_steps, stop_after_s=stop)
     except ValueError as exc:  # a checkpoint written with another config
         raise NKFInputError(str(exc)) from None
     print(f"{out / 'nkf.safetensors'}: best held-out mean IoU {res['best']:.4f} after {res['step']} steps "

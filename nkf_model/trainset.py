@@ -44,21 +44,24 @@ def _cache_path(cache_dir: Path, entry: corpus.CorpusMesh) -> Path:
     return Path(cache_dir) / f"{entry.name}.npz"
 
 
-def build_samples(entry: corpus.CorpusMesh, spec: CacheSpec) -> dict:
+def build_samples(entry: corpus.CorpusMesh, spec: CacheSpec, device=None) -> dict:
     """Compute the cached samples of one corpus mesh (see the module docstring)."""
     v, f = corpus.load(entry)
-    return samples_from_mesh(v, f, spec, corpus.stable_seed("train-cache", entry.name))
+    return samples_from_mesh(v, f, spec, corpus.stable_seed("train-cache", entry.name), device=device)
 
 
-def samples_from_mesh(v, f, spec: CacheSpec, seed: int) -> dict:
-    """Samples of a triangle mesh (vertices (V, 3), faces (F, 3)) in the corpus's unit box."""
+def samples_from_mesh(v, f, spec: CacheSpec, seed: int, device=None) -> dict:
+    """Samples of a triangle mesh (vertices (V, 3), faces (F, 3)) in the corpus's unit box.
+
+    ``device``: where the winding numbers are computed (None: the CPU loop; ``"cuda"``: PyTorch).
+    """
     rng = np.random.default_rng(seed)
     sp, sn = metrics.sample_surface(v, f, spec.n_surface, rng)
     vol = rng.uniform(-PAD, PAD, size=(spec.n_volume, 3))
     src, _ = metrics.sample_surface(v, f, spec.n_near, rng)
     sigma = np.where(np.arange(spec.n_near) % 2 == 0, 0.005, 0.02)[:, None]
     near = src + rng.normal(size=src.shape) * sigma
-    wn = metrics.winding_number(v, f, np.concatenate([vol, near]))
+    wn = metrics.winding_number(v, f, np.concatenate([vol, near]), device=device)
     occ = wn > 0.5
     return {
         "version": np.int64(CACHE_VERSION),
@@ -82,8 +85,12 @@ def load_samples(path: Path) -> dict | None:
         return None
 
 
-def build_cache(entries, cache_dir: Path, spec: CacheSpec = CacheSpec(), progress: bool = True) -> list[dict]:
-    """Samples of every entry, computed once into ``cache_dir`` (a progress bar on stderr)."""
+def build_cache(entries, cache_dir: Path, spec: CacheSpec = CacheSpec(), progress: bool = True,
+                device=None) -> list[dict]:
+    """Samples of every entry, computed once into ``cache_dir`` (a progress bar on stderr).
+
+    ``device``: where missing samples' winding numbers are computed (see :func:`samples_from_mesh`).
+    """
     from tqdm import tqdm
 
     cache_dir = Path(cache_dir)
@@ -93,7 +100,7 @@ def build_cache(entries, cache_dir: Path, spec: CacheSpec = CacheSpec(), progres
         path = _cache_path(cache_dir, e)
         d = load_samples(path)
         if d is None:
-            d = build_samples(e, spec)
+            d = build_samples(e, spec, device=device)
             tmp = path.with_suffix(".tmp.npz")
             np.savez(tmp, **d)
             tmp.replace(path)

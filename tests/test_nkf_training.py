@@ -115,6 +115,17 @@ def test_config_errors_are_clear(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_winding_number_in_torch_matches_the_compiled_loop():
+    # The PyTorch path (used to build the training cache on a GPU) runs the same formula.
+    v, f = icosphere(2)
+    rng = np.random.default_rng(3)
+    q = np.concatenate([rng.uniform(-0.6, 0.6, (400, 3)), rng.normal(size=(100, 3)) * 0.01 + v[:100] * 0.999])
+    np.testing.assert_allclose(metrics.winding_number(v, f, q, device="cpu"), metrics.winding_number(v, f, q),
+                               atol=1e-9)
+    w = metrics.winding_number(v, f, q, device="cpu")
+    assert w.max() > 0.99 and w.min() < 0.01
+
+
 def test_metrics_winding_agrees_for_the_test_meshes():
     v, f = box_mesh()
     q = np.array([[0.0, 0.0, 0.0], [0.39, 0.24, 0.14], [0.41, 0.0, 0.0]])
