@@ -189,6 +189,7 @@ def fit_pou(
     engine: Engine,
     *,
     features=None,
+    coarse_a: np.ndarray | None = None,
     points_per_patch: int = POINTS_PER_PATCH,
     coarse_points: int = COARSE_POINTS,
     seed: int = 0,
@@ -212,6 +213,11 @@ def fit_pou(
         Evaluates the blended function (the local solves always run on the CPU).
     features : callable, optional
         ``phi`` for query points, as in :class:`nkf_model.solve.KernelFunction`.
+    coarse_a : (2N, 4) float64, optional
+        Constraints for the coarse fit instead of ``a``: the learned kernel passes the data-free
+        ``[x : 1]`` rows here. The coarse fit only decides the sign far from the data, where the
+        learned features (trained on inputs of up to 3,000 points) have nothing to condition on;
+        with them, it put spurious inside regions far from 10,000-point inputs.
 
     Returns
     -------
@@ -229,9 +235,9 @@ def fit_pou(
     sub = farthest_point_sample(x, n_coarse, seed=seed)
     # The coarse fit reuses the given constraints of the chosen points (same eps, same features).
     rows = np.concatenate([sub, sub + n])
-    ac, yc = a[rows], y[rows]
+    ac, yc = (a if coarse_a is None else coarse_a)[rows], y[rows]
     alpha_c, _ = solve_dense(ac, yc, lam, engine, check=check)
-    coarse = KernelFunction(ac, alpha_c, engine, features=features)
+    coarse = KernelFunction(ac, alpha_c, engine, features=features if coarse_a is None else None)
     if step is not None:
         step(0.05)
 

@@ -285,7 +285,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
             n_centres = len(idx)
         else:
             fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, check=track.check, step=track.step,
-                                   features=phi)
+                                   features=phi, coarse_a=None if phi is None else homogeneous(xa))
             info = SolveInfo("pou", len(a), pou_info.centres)
             n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
         track.begin("evaluate")

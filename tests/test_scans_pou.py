@@ -96,3 +96,21 @@ def test_voxel_for_count_reaches_the_target():
     v = voxel_for_count(p, 5000, start=0.001)
     r = voxel_reduce(p, None, None, v)
     assert len(r.points) <= 5000 and len(r.points) > 1500 and r.normals is None
+
+
+def test_coarse_fit_can_use_data_free_constraints(torus_fit):
+    """The learned kernel's PoU takes its far-field sign from the data-free kernel (coarse_a)."""
+    x, xa, y, a, f, info = torus_fit
+    rng = np.random.default_rng(1)
+    phi_a = rng.normal(size=(len(a), 2))  # stand-in features: change every local fit
+    a_feat = np.concatenate([a[:, :3], phi_a, a[:, 3:]], axis=1)
+
+    def features(q):
+        return np.ones((len(q), 2))
+
+    far = rng.uniform(-0.55, 0.55, size=(2000, 3))
+    g, _ = fit_pou(x, a_feat, y, 1e-10, cpu_engine(), features=features, coarse_a=a)
+    assert g.coarse.features is None
+    np.testing.assert_allclose(g.coarse(far), f.coarse(far), rtol=1e-9, atol=1e-9)
+    h, _ = fit_pou(x, a_feat, y, 1e-10, cpu_engine(), features=features)
+    assert not np.allclose(h.coarse(far), f.coarse(far), rtol=1e-3, atol=1e-3)
