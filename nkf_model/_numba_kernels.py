@@ -301,6 +301,37 @@ def gmatrix(q, ct, acute):
 
 
 @nb.njit(parallel=True, **_OPTS)
+def gram_lower(u, ct, r, diag, acute):
+    """Lower triangle of the scaled Gram matrix ``out[i, j] = r[i] r[j] g(|u[i] - u[j]|^2) / pi``
+    (j <= i) plus ``diag`` on the diagonal; the upper triangle is left unset (Cholesky reads only
+    the lower one). ``u`` is (N, D), ``ct`` its transpose (D, N), ``r`` the norms (N,)."""
+    n = u.shape[0]
+    out = np.empty((n, n))
+    # Rows k and n-1-k together: every task does the same work (row i costs i + 1 kernel values).
+    for k in nb.prange((n + 1) // 2):
+        _gram_row(u, ct, r, diag, acute, out, k)
+        if n - 1 - k != k:
+            _gram_row(u, ct, r, diag, acute, out, n - 1 - k)
+    return out
+
+
+@nb.njit(inline="always", **_OPTS)
+def _gram_row(u, ct, r, diag, acute, out, i):
+    """Row ``i`` of :func:`gram_lower`, columns 0..i."""
+    row = out[i]
+    if ct.shape[0] == 4:
+        _row_g4(u, i, ct[:, : i + 1], row, acute)
+    elif ct.shape[0] == 12:
+        _row_g12(u, i, ct[:, : i + 1], row, acute)
+    else:
+        _row_g(u, i, ct, 0, i + 1, row)
+    s = r[i] / PI
+    for j in range(i + 1):
+        row[j] *= s * r[j]
+    row[i] += diag
+
+
+@nb.njit(parallel=True, **_OPTS)
 def gnormal(q, ct, u, v, w, nchunks, acute):
     """acc[j] = sum_i g_ij w_i (w_i sum_k g_ik u_k + v_i), with g_ij = g(|q[i] - c[j]|^2).
 

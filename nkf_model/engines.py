@@ -48,6 +48,13 @@ class Engine:
         """``K(q_i, c_j)``: (Nq, Nc) float64."""
         raise NotImplementedError
 
+    def gram(self, u, r, diag: float, check: Check = None) -> np.ndarray:
+        """``K(a_i, a_j) + diag * I`` (N, N) float64 for unit rows ``u`` and norms ``r``; only the
+        lower triangle is guaranteed (what a Cholesky factorisation reads)."""
+        g = self.kernel_matrix(u, r, u, r, check=check)
+        g[np.diag_indices(len(g))] += diag
+        return g
+
     def normal_product(self, xu, xr, cu, cr, u, v, check: Check = None) -> np.ndarray:
         """``K^T (K u + v)`` with ``K = K(x, c)`` (N, M), never stored: (M,) float64."""
         raise NotImplementedError
@@ -123,6 +130,17 @@ class NumbaEngine(Engine):
                 g[s:e] = self._nk.gmatrix(np.ascontiguousarray(qu[s:e]), ct, acute)
             g[s:e] *= qr[s:e, None] / math.pi
             g[s:e] *= cr[None, :]
+        return g
+
+    def gram(self, u, r, diag: float, check: Check = None) -> np.ndarray:
+        # One fused pass over the lower triangle (half the kernel values, no scaling passes).
+        if check is not None:
+            check()
+        with self._lock:
+            g = self._nk.gram_lower(np.ascontiguousarray(u), np.ascontiguousarray(u.T),
+                                    np.ascontiguousarray(r, dtype=np.float64), float(diag), self._acute(u))
+        if check is not None:
+            check()
         return g
 
     def normal_product(self, xu, xr, cu, cr, u, v, check: Check = None):

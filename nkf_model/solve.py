@@ -106,10 +106,9 @@ def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, check:
     """
     u, r = split_unit(a)
     n = len(a)
-    G = engine.kernel_matrix(u, r, u, r, check=check)
+    G = engine.gram(u, r, n * lam, check=check)
     if check is not None:
         check()
-    G[np.diag_indices(n)] += n * lam
     jitter = 0.0
     while True:
         try:

@@ -89,3 +89,20 @@ def test_solves_stop_when_cancelled():
         solve_dense(a, y, 1e-10, cpu_engine(), check=check)
     with pytest.raises(Cancelled):
         solve_falkon(a, y, np.arange(100), 1e-10, cpu_engine(), check=check)
+
+
+@pytest.mark.parametrize("features", [0, 8, 2])  # 4-D, 12-D and generic rows
+def test_fused_gram_lower_triangle_matches_the_kernel_matrix(features):
+    from nkf_model.engines import TorchEngine
+    from nkf_model.kernel import split_unit
+
+    rng = np.random.default_rng(features)
+    x = rng.uniform(-0.5, 0.5, size=(301, 3))
+    phi = None if features == 0 else rng.normal(scale=0.3, size=(301, features))
+    u, r = split_unit(homogeneous(x, phi))
+    low = np.tril_indices(len(u))
+    want = ns_kernel(homogeneous(x, phi), homogeneous(x, phi))
+    want[np.diag_indices(len(u))] += 0.25
+    for engine in (cpu_engine(), TorchEngine("cpu")):
+        got = engine.gram(u, r, 0.25)
+        np.testing.assert_allclose(got[low], want[low], rtol=1e-11, atol=1e-11)
