@@ -1,12 +1,13 @@
 """Stage 5: evaluate the fitted function on a grid, only near its zero level set.
 
 The grid covers the cube ``[-GRID_HALF, GRID_HALF]^3`` of the unit box with ``resolution`` cells
-per side. Instead of all ``(R+1)^3`` nodes, the function is evaluated on a coarse grid (24 to 48
+per side. Instead of all ``(R+1)^3`` nodes, the function is evaluated on a coarse grid (16 to 32
 cells per side), and at each finer level only inside the cells whose corners change sign; from there
 the fine level follows the surface (a flood fill) into every coarse cell it runs into, so the fine band
 is closed even where the coarse grid missed a crossing. The number of evaluations then grows as R^2
 (the surface), not R^3.
-Node values are kept in sparse arrays (sorted int64 keys), so memory also grows as R^2.
+Node values are kept in sparse arrays (sorted int64 keys) between levels and in hash tables during a
+level's flood fill (compiled loops in :mod:`nkf_model._flood_kernels`), so memory also grows as R^2.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _flood_kernels as _fk
+
 # The grid spans the unit box plus a margin, so surfaces that bulge past the points' bounding box
 # (and the offset constraints at +-eps) stay inside it.
 GRID_HALF = 0.55
@@ -24,14 +27,6 @@ MAX_RESOLUTION = 1024
 COARSEST = 16  # the coarsest level has 16 to 32 cells per side
 
 _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
-_NEIGHBOURS = np.array(
-    [[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64
-)
-_CHILD_NODES = np.array(
-    [[i, j, k] for i in (0, 1, 2) for j in (0, 1, 2) for k in (0, 1, 2)], dtype=np.int64
-)
-
-
 def levels(resolution: int) -> list[int]:
     """Cells per side of the (padded) grid at each level, coarse to fine.
 
@@ -119,19 +114,6 @@ def _lookup(keys, values, query):
     return np.where(found, values[pos], np.nan)
 
 
-def _crossing_children(local: np.ndarray) -> np.ndarray:
-    """For values (P, 3, 3, 3) at the 27 nodes of P subdivided cells, a mask (P, 2, 2, 2) of the
-    child cells whose corners are not all of one sign."""
-    neg = local < 0
-    out = np.zeros((len(local), 2, 2, 2), dtype=bool)
-    for a in (0, 1):
-        for b in (0, 1):
-            for c in (0, 1):
-                sub = neg[:, a : a + 2, b : b + 2, c : c + 2].reshape(len(local), 8)
-                out[:, a, b, c] = sub.any(axis=1) & ~sub.all(axis=1)
-    return out
-
-
 def _crossing_dense(v: np.ndarray) -> np.ndarray:
     """Cells (N, 3) of a dense node array (r+1, r+1, r+1) whose corners are not all of one sign."""
     neg = v < 0
@@ -142,47 +124,6 @@ def _crossing_dense(v: np.ndarray) -> np.ndarray:
         anyneg |= sub
         allneg &= sub
     return np.argwhere(anyneg & ~allneg).astype(np.int64)
-
-
-def _exit_parents(local, child, parent, r_prev, done_parents):
-    """Coarse cells the fine surface runs into from crossing child cells.
-
-    ``local`` (P, 3, 3, 3) holds the 27 node values of each crossing child's parent, ``child`` (P, 3)
-    the child's offset (0 or 1 per axis) and ``parent`` (P, 3) the parent cell. The bilinear surface
-    inside a cell leaves it through a face exactly when that face's corners change sign, so the
-    neighbour across each outer face with a sign change is needed. Returns new parents (K, 3).
-    """
-    neg = local < 0
-    out = []
-    idx = np.arange(len(child))
-    for axis in range(3):
-        side = child[:, axis]  # the child's outer face on this axis is at local node 2*side
-        for s in (0, 1):
-            sel = idx[side == s]
-            if len(sel) == 0:
-                continue
-            node = 2 * s
-            # The face's 4 corners: node index `node` on `axis`, child offset .. offset+1 on the others.
-            others = [a for a in range(3) if a != axis]
-            corners = []
-            for da in (0, 1):
-                for db in (0, 1):
-                    ix = [None, None, None]
-                    ix[axis] = np.full(len(sel), node)
-                    ix[others[0]] = child[sel, others[0]] + da
-                    ix[others[1]] = child[sel, others[1]] + db
-                    corners.append(neg[sel, ix[0], ix[1], ix[2]])
-            c = np.stack(corners, axis=1)
-            exits = c.any(axis=1) & ~c.all(axis=1)
-            nb = parent[sel[exits]].copy()
-            nb[:, axis] += 1 if s == 1 else -1
-            ok = (nb[:, axis] >= 0) & (nb[:, axis] < r_prev)
-            out.append(nb[ok])
-    if not out:
-        return np.zeros((0, 3), dtype=np.int64)
-    cand = np.unique(cell_keys(np.concatenate(out), r_prev))
-    cand = cand[~np.isin(cand, done_parents, assume_unique=True)]
-    return cells_from_keys(cand, r_prev)
 
 
 def evaluate_sparse(
@@ -260,45 +201,29 @@ def evaluate_sparse(
         extra = seed_cells(r_prev)
         if len(extra):
             crossing = cells_from_keys(np.union1d(cell_keys(crossing, r_prev), cell_keys(extra, r_prev)), r_prev)
-        lvl_keys = np.zeros(0, dtype=np.int64)
-        lvl_vals = np.zeros(0)
-        done_parents = np.zeros(0, dtype=np.int64)
-        fine = []
-        frontier = crossing
-        evaluated = 0
         # Flood fill along the surface: evaluate the children of the coarse crossing cells, then of
-        # every coarse cell the fine surface runs into, until the fine band is closed.
+        # every coarse cell the fine surface runs into, until the fine band is closed. The node
+        # values of this level and the parents already visited live in hash tables (compiled loops
+        # in nkf_model._flood_kernels); only the function evaluations run here.
+        tk, tv = _fk.new_table(27 * len(crossing))
+        dk, dv = _fk.new_table(7 * len(crossing))
+        fine = []
+        frontier = np.ascontiguousarray(crossing, dtype=np.int64)
+        evaluated = 0
         while len(frontier):
-            done_parents = np.union1d(done_parents, cell_keys(frontier, r_prev))
-            child_nodes = (2 * frontier[:, None, :] + _CHILD_NODES[None]).reshape(-1, 3)
-            ck, inverse = np.unique(node_keys(child_nodes, r), return_inverse=True)
+            tk, tv = _fk.grow(tk, tv, 27 * len(frontier))
+            dk, dv = _fk.grow(dk, dv, 7 * len(frontier))
             if check is not None:
                 check()
-            vals = _lookup(lvl_keys, lvl_vals, ck) if len(lvl_keys) else np.full(len(ck), np.nan)
-            new = np.isnan(vals)
-            nk = ck[new]
-            n = r + 1
-            ijk = np.stack([nk // (n * n), (nk // n) % n, nk % n], axis=1)
-            nv = np.full(len(nk), np.nan)
-            even = (ijk % 2 == 0).all(axis=1)
-            if len(keys):
-                nv[even] = _lookup(keys, values, node_keys(ijk[even] // 2, r_prev))
-            todo = np.isnan(nv)
-            nv[todo] = run(ijk[todo], r, expected_rest=4 * int(todo.sum()) * remaining_levels)
-            evaluated += int(todo.sum())
-            vals[new] = nv
-            order = np.argsort(np.concatenate([lvl_keys, nk]), kind="stable")
-            lvl_keys = np.concatenate([lvl_keys, nk])[order]
-            lvl_vals = np.concatenate([lvl_vals, nv])[order]
+            slots, todo_ijk, todo_slots = _fk.gather(frontier, r, tk, tv, keys, values, r_prev, dk)
+            tv[todo_slots] = run(todo_ijk, r, expected_rest=4 * len(todo_slots) * remaining_levels)
+            evaluated += len(todo_slots)
             if check is not None:
                 check()
-            local = vals[inverse].reshape(len(frontier), 3, 3, 3)
-            which = np.argwhere(_crossing_children(local))  # (parent, a, b, c)
-            cells = 2 * frontier[which[:, 0]] + which[:, 1:]
+            cells, frontier = _fk.advance(frontier, slots, tv, r_prev, dk)
             fine.append(cells)
-            frontier = _exit_parents(local[which[:, 0]], which[:, 1:], frontier[which[:, 0]], r_prev, done_parents)
+        keys, values = _fk.export(tk, tv)
         per_level.append((r, evaluated))
-        keys, values = lvl_keys, lvl_vals
         # A fine cell is the child of only one parent, and each parent is visited once: no repeats.
         crossing = np.concatenate(fine) if fine else np.zeros((0, 3), dtype=np.int64)
     band = crossing[(crossing < resolution).all(axis=1)]
