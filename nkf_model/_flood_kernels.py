@@ -70,7 +70,7 @@ def gather(frontier, r, keys, vals, prev_keys, prev_vals, r_prev, done_keys):
     """Slots of the 27 child nodes of each parent cell in ``frontier`` (P, 3) on the ``r``-cell grid.
 
     Nodes seen before keep their slot; new even nodes take their value from the previous level's
-    sorted ``prev_keys``/``prev_vals`` when it has them; the others are inserted with NaN and
+    table ``prev_keys``/``prev_vals`` when it has them; the others are inserted with NaN and
     returned for evaluation. The frontier's parents are added to the set ``done_keys``. The tables
     must have room (see :func:`grow`).
 
@@ -104,10 +104,9 @@ def gather(frontier, r, keys, vals, prev_keys, prev_vals, r_prev, done_keys):
                         s = -s - 1
                         keys[s] = key
                         value = np.nan
-                        if a % 2 == 0 and b % 2 == 0 and e % 2 == 0 and prev_keys.shape[0] > 0:
-                            pkey = ((i // 2) * np1 + j // 2) * np1 + k // 2
-                            t = np.searchsorted(prev_keys, pkey)
-                            if t < prev_keys.shape[0] and prev_keys[t] == pkey:
+                        if a % 2 == 0 and b % 2 == 0 and e % 2 == 0:
+                            t = _find(prev_keys, ((i // 2) * np1 + j // 2) * np1 + k // 2)
+                            if t >= 0:
                                 value = prev_vals[t]
                         vals[s] = value
                         if np.isnan(value):
@@ -204,19 +203,21 @@ def advance(frontier, slots, vals, r_prev, done_keys):
 
 
 @nb.njit(**_OPTS)
-def export(keys, vals):
-    """The table's entries as sorted keys (K,) int64 and their values (K,) float64."""
-    m = 0
-    for k in keys:
-        if k != -1:
-            m += 1
-    out_k = np.empty(m, dtype=np.int64)
-    out_v = np.empty(m)
-    j = 0
-    for s in range(keys.shape[0]):
-        if keys[s] != -1:
-            out_k[j] = keys[s]
-            out_v[j] = vals[s]
-            j += 1
-    order = np.argsort(out_k)
-    return out_k[order], out_v[order]
+def insert(keys, vals, new_keys, new_vals):
+    """Put ``new_keys`` (K,) with ``new_vals`` (K,) into the table (it must have room)."""
+    for m in range(new_keys.shape[0]):
+        s = _find(keys, new_keys[m])
+        if s < 0:
+            s = -s - 1
+            keys[s] = new_keys[m]
+        vals[s] = new_vals[m]
+
+
+@nb.njit(**_OPTS)
+def lookup(keys, vals, query):
+    """Values (N,) of the keys ``query`` (N,); NaN for keys not in the table."""
+    out = np.empty(query.shape[0])
+    for m in range(query.shape[0]):
+        s = _find(keys, query[m])
+        out[m] = vals[s] if s >= 0 else np.nan
+    return out

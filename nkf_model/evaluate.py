@@ -6,8 +6,8 @@ cells per side), and at each finer level only inside the cells whose corners cha
 the fine level follows the surface (a flood fill) into every coarse cell it runs into, so the fine band
 is closed even where the coarse grid missed a crossing. The number of evaluations then grows as R^2
 (the surface), not R^3.
-Node values are kept in sparse arrays (sorted int64 keys) between levels and in hash tables during a
-level's flood fill (compiled loops in :mod:`nkf_model._flood_kernels`), so memory also grows as R^2.
+Node values are kept in hash tables of int64 node keys (compiled loops in
+:mod:`nkf_model._flood_kernels`), so memory also grows as R^2.
 """
 
 from __future__ import annotations
@@ -74,11 +74,12 @@ class SparseField:
     ----------
     resolution : int
         Cells per side of the finest grid over the box ``[-GRID_HALF, GRID_HALF]^3``.
-    keys : (K,) int64, sorted
-        :func:`node_keys` of the nodes with known values, on the padded grid of ``grid_cells``
-        cells per side (see :func:`levels`).
-    values : (K,) float64
-        Function values at those nodes.
+    keys : (T,) int64
+        Hash table (open addressing, -1 for an empty slot; see :mod:`nkf_model._flood_kernels`) of
+        the :func:`node_keys` of the nodes with known values, on the padded grid of
+        ``grid_cells`` cells per side (see :func:`levels`).
+    values : (T,) float64
+        Function values in the slots of ``keys``.
     band : (B, 3) int64
         Finest-grid cells (each index below ``resolution``) whose eight corners are known and change
         sign.
@@ -104,14 +105,12 @@ class SparseField:
 
     def lookup(self, ijk: np.ndarray) -> np.ndarray:
         """Values at nodes (N, 3); NaN where unknown."""
-        return _lookup(self.keys, self.values, node_keys(ijk, self.grid_cells))
+        return _fk.lookup(self.keys, self.values, np.ascontiguousarray(node_keys(ijk, self.grid_cells)))
 
-
-def _lookup(keys, values, query):
-    pos = np.searchsorted(keys, query)
-    pos = np.minimum(pos, len(keys) - 1)
-    found = keys[pos] == query
-    return np.where(found, values[pos], np.nan)
+    @property
+    def known(self) -> int:
+        """Number of nodes with known values."""
+        return int((self.keys != -1).sum())
 
 
 def _crossing_dense(v: np.ndarray) -> np.ndarray:
@@ -190,10 +189,11 @@ def evaluate_sparse(
     g = np.arange(r + 1, dtype=np.int64)
     nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
     # Rough guess of the work left after the coarse grid: each finer level costs about as much.
-    values = run(nodes, r, expected_rest=len(nodes) * (len(lv) - 1))
-    keys = node_keys(nodes, r)  # meshgrid order is already sorted by key
+    dense = run(nodes, r, expected_rest=len(nodes) * (len(lv) - 1))
     per_level.append((r, len(nodes)))
-    crossing = _crossing_dense(values.reshape(r + 1, r + 1, r + 1))
+    crossing = _crossing_dense(dense.reshape(r + 1, r + 1, r + 1))
+    keys, values = _fk.new_table(len(nodes))
+    _fk.insert(keys, values, node_keys(nodes, r), dense)
 
     for li in range(1, len(lv)):
         r_prev, r = lv[li - 1], lv[li]
@@ -222,7 +222,7 @@ def evaluate_sparse(
                 check()
             cells, frontier = _fk.advance(frontier, slots, tv, r_prev, dk)
             fine.append(cells)
-        keys, values = _fk.export(tk, tv)
+        keys, values = tk, tv
         per_level.append((r, evaluated))
         # A fine cell is the child of only one parent, and each parent is visited once: no repeats.
         crossing = np.concatenate(fine) if fine else np.zeros((0, 3), dtype=np.int64)
