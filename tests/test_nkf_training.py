@@ -98,8 +98,9 @@ def test_a_few_steps_lower_the_loss(two_meshes, one_thread):
     assert after < before - 0.01, (before, after)
 
 
-def test_shipped_config_loads():
-    cfg = load_config("configs/nkf.toml")
+@pytest.mark.parametrize("name", ["nkf.toml", "nkf-gpu.toml"])
+def test_shipped_configs_load(name):
+    cfg = load_config(f"configs/{name}")
     assert cfg.fit.lam > 0 and cfg.model.feature_dim >= 1 and cfg.train.steps > 0
 
 
@@ -130,3 +131,35 @@ def test_metrics_winding_agrees_for_the_test_meshes():
     v, f = box_mesh()
     q = np.array([[0.0, 0.0, 0.0], [0.39, 0.24, 0.14], [0.41, 0.0, 0.0]])
     assert list(metrics.occupancy(v, f, q)) == [True, True, False]
+
+
+def test_train_cli_stops_checkpoints_and_resumes(tmp_path):
+    """`nkf train` on two corpus meshes: stop after 2 steps, resume to 4, and --stop-after 0."""
+    from nkf_model import corpus
+    from nkf_model.cli import main
+    from nkf_model.weights import load_weights
+
+    if not (corpus.corpus_dir() / "MANIFEST.csv").is_file():
+        pytest.skip("the mesh corpus (../shared/data/meshes) is not beside this checkout")
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text(
+        "[model]\ngrid = 4\npointnet_width = 4\nunet_width = 2\nunet_levels = 2\nfeature_dim = 2\n"
+        "point_weights = false\n"
+        f'[data]\nholdout = 1\nlimit = 2\ncache = "{tmp_path / "cache"}"\n'
+        "[cache]\nn_surface = 1000\nn_volume = 256\nn_near = 256\n"
+        "[augment]\nn_min = 60\nn_max = 80\nn_mode = 70\nn_volume = 64\nn_near = 64\nn_surface = 32\n"
+        "[train]\nsteps = 4\nbatch = 1\nval_every = 2\ncheckpoint_every = 2\nthreads = 1\ndevice = \"cpu\"\n"
+        "[[validation]]\npoints = 80\nnoise = 0.0\nhalf = false\n"
+    )
+    out = tmp_path / "run"
+    assert main(["train", "--config", str(cfg), "--out", str(out), "--max-steps", "2", "--quiet"]) == 0
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert state["step"] == 2
+    assert main(["train", "--config", str(cfg), "--out", str(out), "--resume", "--stop-after", "0", "--quiet"]) == 0
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 2  # no time: no step
+    assert main(["train", "--config", str(cfg), "--out", str(out), "--resume", "--quiet"]) == 0
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 4
+    log = (out / "train.log").read_text()
+    assert "resumed at step 2" in log and "stopped at step 4" in log
+    load_weights(out / "nkf.safetensors")  # the best weights so far load as weights
+    assert main(["train", "--config", str(cfg), "--out", str(out), "--quiet"]) == 1  # would overwrite a run
