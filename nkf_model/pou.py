@@ -66,6 +66,8 @@ class PoUInfo:
         Kernel centres over all patches (each constraint counts once per patch it belongs to).
     coarse_points : int
         Points of the coarse global fit.
+    patch_lam : float
+        Regularisation per constraint of the local solves.
     """
 
     h: float
@@ -75,6 +77,7 @@ class PoUInfo:
     thinned: int
     centres: int
     coarse_points: int
+    patch_lam: float = 0.0
 
 
 def patch_spacing(x: np.ndarray, target: int = POINTS_PER_PATCH, sample: int = 50_000, seed: int = 0) -> float:
@@ -190,6 +193,7 @@ def fit_pou(
     *,
     features=None,
     coarse_a: np.ndarray | None = None,
+    patch_lam: float | None = None,
     points_per_patch: int = POINTS_PER_PATCH,
     coarse_points: int = COARSE_POINTS,
     seed: int = 0,
@@ -208,7 +212,10 @@ def fit_pou(
     y : (2N,) float64
         Labels (+1 outer, -1 inner).
     lam : float
-        Regularisation per constraint, as in the global solve.
+        Regularisation per constraint, as in the global solve (the coarse fit uses it).
+    patch_lam : float, optional
+        Regularisation per constraint of the local solves (default ``lam``); larger values smooth
+        noisy input (see :func:`nkf_model.noise.noise_lam`).
     engine : Engine
         Evaluates the blended function (the local solves always run on the CPU).
     features : callable, optional
@@ -224,6 +231,7 @@ def fit_pou(
     PoUFunction, PoUInfo
     """
     n = len(x)
+    local_lam = lam if patch_lam is None else float(patch_lam)
     rng = np.random.default_rng(seed)
     h = patch_spacing(x, points_per_patch, seed=seed)
     lo = -GRID_HALF - 1e-9
@@ -263,7 +271,7 @@ def fit_pou(
     def work(job):
         patch, ids = job
         rows = np.concatenate([ids, ids + n])
-        return patch, _solve_patch(a[rows], y[rows], lam)
+        return patch, _solve_patch(a[rows], y[rows], local_lam)
 
     results = []
     workers = max(1, min(os.cpu_count() or 1, _numba_threads()))
@@ -301,6 +309,7 @@ def fit_pou(
         thinned=thinned,
         centres=int(offs[-1]),
         coarse_points=n_coarse,
+        patch_lam=local_lam,
     )
     return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features), info
 

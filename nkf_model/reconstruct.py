@@ -24,6 +24,7 @@ from .fallback import run_with_cpu_fallback
 from .inputs import clean_points
 from .kernel import homogeneous
 from .mesh import Mesh, triangulate, vertex_normals
+from .noise import estimate_noise, noise_lam
 from .normalise import Normalisation
 from .normals import DEFAULT_K as NORMAL_K
 from .normals import check_orientation, check_viewpoints, estimate_normals, median_spacing
@@ -126,6 +127,9 @@ def reconstruct(
     lam : float
         Regularisation per constraint, >= 0 (the paper's lambda; the solve uses
         ``(G + 2N lam I) alpha = y``). Larger values smooth the surface; 1e-12 to 1e-8 fit the points.
+        Above 3,000 points the local fits of the partition of unity use at least ``6 s^2`` for the
+        position noise ``s`` estimated from the input (unit box; :mod:`nkf_model.noise`), reported as
+        ``stats["pou"]["patch_lam"]`` (``method="splines"``; the learned kernel keeps ``lam``).
     resolution : int
         Cells per side of the marching-cubes grid, 16 to 1024. The grid spans the input's
         bounding box plus 5 % on each side.
@@ -268,6 +272,10 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
         prep = model.prepare(xa, y)
         a, y, phi = prep.a, prep.y, prep.phi
     kind = choose_solver(n, max_centres, solver)
+    # Noisy input: the local solves of the partition of unity regularise in proportion to the
+    # estimated noise variance (nkf_model.noise) instead of interpolating the noise; clean input
+    # keeps ``lam``. The learned kernel keeps the ``lam`` it was trained and measured with.
+    patch_lam = noise_lam(estimate_noise(x, nrm), lam) if kind == "pou" and model is None else None
 
     def fit_and_evaluate(eng):
         track.begin("solve")
@@ -285,7 +293,8 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
             n_centres = len(idx)
         else:
             fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, check=track.check, step=track.step,
-                                   features=phi, coarse_a=None if phi is None else homogeneous(xa))
+                                   features=phi, coarse_a=None if phi is None else homogeneous(xa),
+                                   patch_lam=patch_lam)
             info = SolveInfo("pou", len(a), pou_info.centres)
             n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
         track.begin("evaluate")
