@@ -82,6 +82,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="cut away the surface farther than K point spacings from every point (default: off)")
     s.add_argument("--min-piece", type=float, default=None, metavar="F",
                    help="drop connected pieces with less than fraction F of the total area (default 0)")
+    s.add_argument("--close", action="store_true",
+                   help="cap the surface where it meets the grid's bounds, for a watertight mesh")
     s.add_argument("--no-colors", action="store_true",
                    help="do not carry the points' red green blue onto the mesh (carried when present)")
     s.add_argument("--reduce-to", type=int, default=DEFAULT_REDUCE_TO, metavar="N",
@@ -201,7 +203,7 @@ def cmd_reconstruct(args) -> int:
                                normals_mode="estimate" if estimate_n else "given", orientation=args.orient,
                                viewpoints=args.viewpoint, colors=colors, trim=trim, min_piece=min_piece,
                                reduce_to=reduce_to, solver=args.solver, memory_budget=memory_budget,
-                               weights=args.weights)
+                               weights=args.weights, close=args.close)
     finally:
         close()
     for w in caught:

@@ -133,6 +133,7 @@ def evaluate_sparse(
     check: Callable[[], None] | None = None,
     step: Callable[[float], None] | None = None,
     seeds: np.ndarray | None = None,
+    close: bool = False,
 ) -> SparseField:
     """Evaluate ``f`` coarse to fine around its zero level set.
 
@@ -152,6 +153,9 @@ def evaluate_sparse(
         Unit-box points known to lie on the surface (the input points). The cells holding them are
         refined at every level, so no part of the surface near the data can be missed by the coarse
         grid.
+    close : bool
+        Treat the function as positive (outside) on the grid's faces, so that the mesh is capped
+        where the zero level set would run out of the grid (a watertight mesh).
 
     Returns
     -------
@@ -183,6 +187,12 @@ def evaluate_sparse(
                 done = total_done + min(len(ijk), s + chunk)
                 step(done / max(1, done + expected_rest + (len(ijk) - min(len(ijk), s + chunk))))
         total_done += len(ijk)
+        if close:
+            # Nodes on or past the grid's faces count as outside (|f|), so that a surface that runs
+            # into the grid's bounds is capped there instead of left open.
+            fine_ijk = ijk * (top // r)
+            edge = ((fine_ijk <= 0) | (fine_ijk >= resolution)).any(axis=1)
+            out[edge] = np.abs(out[edge])
         return out
 
     r = lv[0]

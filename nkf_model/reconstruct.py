@@ -106,6 +106,7 @@ def reconstruct(
     colors=None,
     trim: float | None = None,
     min_piece: float = 0.0,
+    close: bool = False,
     reduce_to: int | None = DEFAULT_REDUCE_TO,
     solver: str = "auto",
     memory_budget: float | None = None,
@@ -170,6 +171,10 @@ def reconstruct(
     min_piece : float
         Remove connected pieces with less than this fraction of the mesh's total area (0 keeps
         all). Scans: :data:`nkf_model.trim.SCAN_MIN_PIECE`.
+    close : bool
+        Cap the surface where it runs into the grid's bounds (the input's bounding box plus 5 %), so
+        that the mesh is watertight, for example for 3D printing. Off by default: on open or thin
+        models the caps are surface that the object does not have.
     reduce_to : int, optional
         Inputs with more points than this are reduced to at most this many by voxel-grid
         averaging (see :mod:`nkf_model.reduce`); ``None`` never reduces.
@@ -208,13 +213,13 @@ def reconstruct(
             points, normals, method=method, lam=lam, resolution=resolution, device=device, progress=progress,
             cancel=cancel, eps=eps, max_centres=max_centres, seed=seed, normals_mode=normals_mode,
             orientation=orientation, viewpoints=viewpoints, colors=colors, trim=trim, min_piece=min_piece,
-            reduce_to=reduce_to, solver=solver, memory_budget=memory_budget, model=model,
+            reduce_to=reduce_to, solver=solver, memory_budget=memory_budget, model=model, close=bool(close),
         )
 
 
 def _reconstruct(points, normals, *, method, lam, resolution, device, progress, cancel, eps, max_centres, seed,
                  normals_mode, orientation, viewpoints, colors, trim, min_piece, reduce_to, solver, memory_budget,
-                 model):
+                 model, close=False):
     vp = check_viewpoints(viewpoints)
     orient = check_orientation(orientation, vp)
     estimate_n = normals_mode == "estimate" or (normals_mode == "auto" and normals is None)
@@ -299,7 +304,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
             n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
         track.begin("evaluate")
         field_ = evaluate_sparse(
-            lambda p: fn(p, check=track.check), resolution, check=track.check, step=track.step, seeds=x
+            lambda p: fn(p, check=track.check), resolution, check=track.check, step=track.step, seeds=x, close=close
         )
         return info, pou_info, n_centres, field_, eng
 
@@ -356,6 +361,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
             "rule": normal_info.orientation, "pieces": normal_info.pieces, "decided_by_views": normal_info.seeded,
         },
         "pou": None if pou_info is None else dict(pou_info.__dict__),
+        "close": close,
         "trim": None if trim_info is None else dict(trim_info.__dict__),
         "estimate": plan.as_dict(),
         "timings": dict(track.timings),

@@ -232,3 +232,21 @@ def test_existing_output_survives_a_failed_run(tmp_path, capsys):
     code, _, _ = run(["reconstruct", src, out, "--quiet"], capsys)
     assert code != 0
     assert out.read_bytes() == b"precious"
+
+
+def test_close_flag_reaches_the_reconstruction(tmp_path, capsys):
+    # Half a sphere: the open rim's inside runs into the grid's bounds unless --close caps it.
+    p, n = sphere_points(800, radius=1.0, seed=2)
+    keep = p[:, 2] > 0
+    src = tmp_path / "half.ply"
+    write_point_cloud(src, p[keep], n[keep])
+    counts = []
+    for extra in ([], ["--close"]):
+        out = tmp_path / f"half{len(extra)}.ply"
+        code, _, _ = run(["reconstruct", src, out, "--resolution", "32", "--quiet", *extra], capsys)
+        assert code == 0
+        _, f = read_mesh(out)
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).astype(np.int64), axis=1)
+        _, c = np.unique(e[:, 0] * (int(f.max()) + 1) + e[:, 1], return_counts=True)
+        counts.append(int((c == 1).sum()))
+    assert counts[0] > 0 and counts[1] == 0

@@ -184,3 +184,30 @@ def test_torch_engine_agrees_with_numba(sphere500):
     assert b.stats["engine"] == "torch:cpu"
     np.testing.assert_array_equal(a.faces, b.faces)
     np.testing.assert_allclose(a.local_vertices / a.scale, b.local_vertices / b.scale, atol=1e-6)
+
+
+def _boundary_edges(faces):
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(e[:, 0] * (int(f.max()) + 1) + e[:, 1], axis=0, return_counts=True)
+    return int((counts == 1).sum())
+
+
+def test_close_caps_a_surface_that_runs_out_of_the_grid(tmp_path):
+    # A wavy sheet across the whole bounding box: its inside (below) runs into the grid's bounds.
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, size=(1500, 2))
+    z = 0.1 * np.sin(3 * xy[:, 0]) * np.cos(2 * xy[:, 1])
+    p = np.column_stack([xy, z])
+    dzdx = 0.3 * np.cos(3 * xy[:, 0]) * np.cos(2 * xy[:, 1])
+    dzdy = -0.2 * np.sin(3 * xy[:, 0]) * np.sin(2 * xy[:, 1])
+    n = np.column_stack([-dzdx, -dzdy, np.ones(len(p))])
+    open_mesh = nkf_model.reconstruct(p, n, resolution=48)
+    closed = nkf_model.reconstruct(p, n, resolution=48, close=True)
+    assert _boundary_edges(open_mesh.faces) > 0
+    assert _boundary_edges(closed.faces) == 0 and closed.stats["close"]
+    # The cap adds surface at the grid's faces and leaves the sheet itself where it was.
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(closed.vertices).query(open_mesh.vertices)
+    assert len(closed.faces) > len(open_mesh.faces) and np.mean(d < 1e-6) > 0.9
