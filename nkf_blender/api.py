@@ -60,6 +60,7 @@ def reconstruct_object(
     orientation: str = "outward",
     trim: float | None = None,
     min_piece: float = 0.0,
+    close: bool = False,
     colors: bool = True,
     memory_budget_gb: float | None = None,
     context=None,
@@ -90,6 +91,8 @@ def reconstruct_object(
         (``nkf_model.trim.SCAN_TRIM`` = 4 suits scans); ``None`` keeps the closed surface.
     min_piece : float
         Drop connected pieces under this fraction of the area (scans: 0.002); 0 keeps all.
+    close : bool
+        Cap the surface where it runs into the bounding box (plus 5 %): a watertight mesh.
     colors : bool
         Carry the object's POINT colour attribute (e.g. ``Col``) onto the mesh as ``Col``.
     memory_budget_gb : float, optional
@@ -125,6 +128,7 @@ def reconstruct_object(
         orientation=_choice("orientation", orientation, ORIENTATIONS),
         trim=None if trim is None else float(trim),
         min_piece=float(min_piece),
+        close=bool(close),
         colors=bool(colors),
         memory_budget=(
             int(float(memory_budget_gb) * prefs.GIB) if memory_budget_gb is not None else prefs.memory_budget(context)

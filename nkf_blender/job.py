@@ -53,6 +53,7 @@ class Settings:
     ``orientation`` of estimated normals, ``"outward"``, ``"up"`` or ``"viewpoint"`` (towards the
     scene camera); ``trim`` point spacings beyond which the surface is cut (``None``: closed
     surface); ``min_piece`` smallest piece kept, as a fraction of the area (0 keeps all);
+    ``close`` caps the surface at the grid's bounds (a watertight mesh);
     ``colors`` carry the object's point colours onto the mesh; ``memory_budget`` bytes a run may
     use (``None``: nkf_model's default, 60 % of the memory, at most 16 GiB).
     """
@@ -67,6 +68,7 @@ class Settings:
     orientation: str = "outward"
     trim: float | None = None
     min_piece: float = 0.0
+    close: bool = False
     colors: bool = True
     memory_budget: int | None = None
 
@@ -199,7 +201,7 @@ class ReconstructJob:
                 normals_mode="estimate" if estimate else "given",
                 orientation=s.orientation if estimate else None,
                 viewpoints=self.viewpoints if estimate and s.orientation == "viewpoint" else None,
-                colors=rgb if s.colors else None, trim=s.trim, min_piece=s.min_piece,
+                colors=rgb if s.colors else None, trim=s.trim, min_piece=s.min_piece, close=s.close,
                 memory_budget=s.memory_budget,
             )
             self.notes.extend(mesh.stats.get("warnings", []))

@@ -42,7 +42,7 @@ class OBJECT_OT_nkf_reconstruct(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     # Properties (method, regularization, resolution, max_points, device, and for scans
-    # normals_mode, orientation, use_scan, trim, min_piece, use_colors) are added by
+    # normals_mode, orientation, use_scan, trim, min_piece, use_close, use_colors) are added by
     # settings.prepare_classes at registration, with the method's default decided then. The memory
     # budget comes from the add-on preferences.
 

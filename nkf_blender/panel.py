@@ -119,6 +119,7 @@ def draw_panel(layout, context) -> None:
     sub.enabled = s.use_scan
     sub.prop(s, "trim")
     sub.prop(s, "min_piece")
+    col.prop(s, "use_close")
     col.prop(s, "use_colors")
 
     if ready and obj is not None and not info.problem:

@@ -91,6 +91,13 @@ def annotations(default_method: str) -> dict:
             name="Min Piece", default=SCAN_MIN_PIECE, min=0.0, max=0.99, soft_max=0.1, precision=4, step=0.1,
             description="Drop connected pieces with less than this fraction of the total area (0 keeps all)",
         ),
+        "use_close": BoolProperty(
+            name="Watertight", default=False,
+            description=(
+                "Cap the surface where it runs into the bounding box (plus 5 %), so that the mesh is "
+                "closed, for 3D printing; off leaves it open there"
+            ),
+        ),
         "use_colors": BoolProperty(
             name="Colours", default=True,
             description="Carry the points' colour attribute (e.g. 'Col' from a PLY) onto the mesh",
@@ -100,7 +107,7 @@ def annotations(default_method: str) -> dict:
 
 PROPERTY_NAMES = (
     "method", "regularization", "resolution", "max_points", "device",
-    "normals_mode", "orientation", "use_scan", "trim", "min_piece", "use_colors",
+    "normals_mode", "orientation", "use_scan", "trim", "min_piece", "use_close", "use_colors",
 )
 
 
@@ -118,6 +125,7 @@ def to_settings(props, memory_budget: int | None = None) -> Settings:
         orientation=props.orientation.lower(),
         trim=float(props.trim) if scan else None,
         min_piece=float(props.min_piece) if scan else 0.0,
+        close=bool(props.use_close),
         colors=bool(props.use_colors),
         memory_budget=memory_budget,
     )

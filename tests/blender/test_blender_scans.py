@@ -237,3 +237,26 @@ def test_oversized_job_under_a_tiny_budget_is_refused_and_changes_nothing(
     job_mod = ext("job")
     job = job_mod.ReconstructJob(pts, nrm, job_mod.Settings(resolution=32, memory_budget=2**20)).run()
     assert job.state == "failed" and "memory budget" in job.error and job.result is None
+
+
+def test_watertight_caps_a_sheet_at_the_bounding_box(scene, bpy_module, tmp_path):
+    bpy = bpy_module
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, size=(1500, 2))
+    z = 0.1 * np.sin(3 * xy[:, 0]) * np.cos(2 * xy[:, 1])
+    nrm = np.column_stack([-0.3 * np.cos(3 * xy[:, 0]) * np.cos(2 * xy[:, 1]),
+                           0.2 * np.sin(3 * xy[:, 0]) * np.sin(2 * xy[:, 1]), np.ones(len(z))])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    src = import_ply(bpy, write_ply(tmp_path / "sheet.ply", np.column_stack([xy, z]), nrm))
+
+    def boundary_edges(**kwargs):
+        bpy.context.view_layer.objects.active = src
+        assert bpy.ops.object.nkf_reconstruct(method="SPLINES", resolution=32, **kwargs) == {"FINISHED"}
+        tri = np.array([p.vertices[:] for p in bpy.context.active_object.data.polygons], dtype=np.int64)
+        e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+        _, counts = np.unique(e[:, 0] * (int(tri.max()) + 1) + e[:, 1], return_counts=True)
+        return int((counts == 1).sum())
+
+    assert boundary_edges() > 0  # off by default: open where the sheet meets the box
+    assert boundary_edges(use_close=True) == 0
+    assert not ext("settings").to_settings(bpy.context.scene.nkf_settings).close
