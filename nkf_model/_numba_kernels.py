@@ -300,35 +300,63 @@ def gmatrix(q, ct, acute):
     return out
 
 
-@nb.njit(parallel=True, **_OPTS)
-def gram_lower(u, ct, r, diag, acute):
-    """Lower triangle of the scaled Gram matrix ``out[i, j] = r[i] r[j] g(|u[i] - u[j]|^2) / pi``
-    (j <= i) plus ``diag`` on the diagonal; the upper triangle is left unset (Cholesky reads only
-    the lower one). ``u`` is (N, D), ``ct`` its transpose (D, N), ``r`` the norms (N,)."""
-    n = u.shape[0]
-    out = np.empty((n, n))
-    # Rows k and n-1-k together: every task does the same work (row i costs i + 1 kernel values).
-    for k in nb.prange((n + 1) // 2):
-        _gram_row(u, ct, r, diag, acute, out, k)
-        if n - 1 - k != k:
-            _gram_row(u, ct, r, diag, acute, out, n - 1 - k)
-    return out
-
-
 @nb.njit(inline="always", **_OPTS)
-def _gram_row(u, ct, r, diag, acute, out, i):
-    """Row ``i`` of :func:`gram_lower`, columns 0..i."""
-    row = out[i]
-    if ct.shape[0] == 4:
-        _row_g4(u, i, ct[:, : i + 1], row, acute)
-    elif ct.shape[0] == 12:
-        _row_g12(u, i, ct[:, : i + 1], row, acute)
-    else:
-        _row_g(u, i, ct, 0, i + 1, row)
+def _scale_row(row, r, i, diag):
     s = r[i] / PI
     for j in range(i + 1):
         row[j] *= s * r[j]
     row[i] += diag
+
+
+# One compiled gram_lower per input dimension, so that a run with 4-D inputs never compiles the 12-D
+# loops (one function with all three branches took about 5 s to compile). Task k fills rows k and
+# n-1-k, so that every task does the same work (row i costs i + 1 kernel values).
+@nb.njit(parallel=True, **_OPTS)
+def _gram_lower4(u, ct, r, diag, acute):
+    n = u.shape[0]
+    out = np.empty((n, n))
+    for k in nb.prange((n + 1) // 2):
+        kk = np.int64(k)
+        for t in range(2 if n - 1 - kk != kk else 1):
+            i = kk if t == 0 else n - 1 - kk
+            _row_g4(u, i, ct[:, : i + 1], out[i], acute)
+            _scale_row(out[i], r, i, diag)
+    return out
+
+
+@nb.njit(parallel=True, **_OPTS)
+def _gram_lower12(u, ct, r, diag, acute):
+    n = u.shape[0]
+    out = np.empty((n, n))
+    for k in nb.prange((n + 1) // 2):
+        kk = np.int64(k)
+        for t in range(2 if n - 1 - kk != kk else 1):
+            i = kk if t == 0 else n - 1 - kk
+            _row_g12(u, i, ct[:, : i + 1], out[i], acute)
+            _scale_row(out[i], r, i, diag)
+    return out
+
+
+@nb.njit(parallel=True, **_OPTS)
+def _gram_lower_any(u, ct, r, diag, acute):
+    n = u.shape[0]
+    out = np.empty((n, n))
+    for k in nb.prange((n + 1) // 2):
+        kk = np.int64(k)
+        for t in range(2 if n - 1 - kk != kk else 1):
+            i = kk if t == 0 else n - 1 - kk
+            _row_g(u, i, ct, 0, i + 1, out[i])
+            _scale_row(out[i], r, i, diag)
+    return out
+
+
+def gram_lower(u, ct, r, diag, acute):
+    """Lower triangle of the scaled Gram matrix ``out[i, j] = r[i] r[j] g(|u[i] - u[j]|^2) / pi``
+    (j <= i) plus ``diag`` on the diagonal; the upper triangle is left unset (Cholesky reads only
+    the lower one). ``u`` is (N, D), ``ct`` its transpose (D, N), ``r`` the norms (N,)."""
+    d = ct.shape[0]
+    fn = _gram_lower4 if d == 4 else _gram_lower12 if d == 12 else _gram_lower_any
+    return fn(u, ct, r, diag, acute)
 
 
 @nb.njit(parallel=True, **_OPTS)
