@@ -314,7 +314,7 @@ def _scale_row(row, r, i, diag):
 @nb.njit(parallel=True, **_OPTS)
 def _gram_lower4(u, ct, r, diag, acute):
     n = u.shape[0]
-    out = np.empty((n, n))
+    out = np.zeros((n, n))  # zero upper triangle: no garbage for the blocked Cholesky to touch
     for k in nb.prange((n + 1) // 2):
         kk = np.int64(k)
         for t in range(2 if n - 1 - kk != kk else 1):
@@ -327,7 +327,7 @@ def _gram_lower4(u, ct, r, diag, acute):
 @nb.njit(parallel=True, **_OPTS)
 def _gram_lower12(u, ct, r, diag, acute):
     n = u.shape[0]
-    out = np.empty((n, n))
+    out = np.zeros((n, n))  # zero upper triangle: no garbage for the blocked Cholesky to touch
     for k in nb.prange((n + 1) // 2):
         kk = np.int64(k)
         for t in range(2 if n - 1 - kk != kk else 1):
@@ -340,7 +340,7 @@ def _gram_lower12(u, ct, r, diag, acute):
 @nb.njit(parallel=True, **_OPTS)
 def _gram_lower_any(u, ct, r, diag, acute):
     n = u.shape[0]
-    out = np.empty((n, n))
+    out = np.zeros((n, n))  # zero upper triangle: no garbage for the blocked Cholesky to touch
     for k in nb.prange((n + 1) // 2):
         kk = np.int64(k)
         for t in range(2 if n - 1 - kk != kk else 1):
@@ -352,8 +352,8 @@ def _gram_lower_any(u, ct, r, diag, acute):
 
 def gram_lower(u, ct, r, diag, acute):
     """Lower triangle of the scaled Gram matrix ``out[i, j] = r[i] r[j] g(|u[i] - u[j]|^2) / pi``
-    (j <= i) plus ``diag`` on the diagonal; the upper triangle is left unset (Cholesky reads only
-    the lower one). ``u`` is (N, D), ``ct`` its transpose (D, N), ``r`` the norms (N,)."""
+    (j <= i) plus ``diag`` on the diagonal; the upper triangle is zero (Cholesky reads only the
+    lower one). ``u`` is (N, D), ``ct`` its transpose (D, N), ``r`` the norms (N,)."""
     d = ct.shape[0]
     fn = _gram_lower4 if d == 4 else _gram_lower12 if d == 12 else _gram_lower_any
     return fn(u, ct, r, diag, acute)
