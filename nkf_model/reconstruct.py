@@ -17,7 +17,7 @@ from threadpoolctl import threadpool_limits
 from . import budget
 from .augment import augment, default_eps
 from .colors import as_rgb8, transfer_colors
-from .engines import select_engine
+from .engines import cpu_engine, select_engine
 from .errors import InvalidParameterError, MissingNormalsError, NoSurfaceError
 from .evaluate import GRID_HALF, MAX_RESOLUTION, MIN_RESOLUTION, evaluate_sparse
 from .fallback import run_with_cpu_fallback
@@ -135,8 +135,10 @@ def reconstruct(
         Cells per side of the marching-cubes grid, 16 to 1024. The grid spans the input's
         bounding box plus 5 % on each side.
     device : {"auto", "cpu", "cuda"}
-        ``"auto"`` uses a CUDA GPU when PyTorch sees one, else the CPU. If the GPU runs out of
-        memory, the work continues on the CPU with a :class:`~nkf_model.fallback.DeviceWarning`.
+        ``"auto"`` uses a CUDA GPU when PyTorch sees one, else the CPU; above 3,000 points (the
+        partition of unity, whose fused CPU loop is faster than its GPU path) it uses the CPU.
+        If the GPU runs out of memory, the work continues on the CPU with a
+        :class:`~nkf_model.fallback.DeviceWarning`.
     progress : callable, optional
         ``progress(fraction, stage)``: ``fraction`` in [0, 1], ``stage`` one of ``"normalise"``,
         ``"reduce"``, ``"normals"``, ``"augment"``, ``"features"`` (nkf only), ``"solve"``, ``"evaluate"``,
@@ -277,6 +279,10 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
         prep = model.prepare(xa, y)
         a, y, phi = prep.a, prep.y, prep.phi
     kind = choose_solver(n, max_centres, solver)
+    if device == "auto" and kind == "pou" and engine.device != "cpu":
+        # The partition of unity's sum is one fused CPU loop; through PyTorch on a GPU it runs patch
+        # by patch and was 5x slower (20,000 points: 9.2 s on an H100 against 1.8 s on its CPU).
+        engine = cpu_engine()
     # Noisy input: the local solves of the partition of unity regularise in proportion to the
     # estimated noise variance (nkf_model.noise) instead of interpolating the noise; clean input
     # keeps ``lam``. The learned kernel keeps the ``lam`` it was trained and measured with.

@@ -211,3 +211,23 @@ def test_close_caps_a_surface_that_runs_out_of_the_grid(tmp_path):
 
     d, _ = cKDTree(closed.vertices).query(open_mesh.vertices)
     assert len(closed.faces) > len(open_mesh.faces) and np.mean(d < 1e-6) > 0.9
+
+
+def test_auto_device_keeps_the_partition_of_unity_on_the_cpu(monkeypatch):
+    """With a GPU engine available, "auto" still runs the PoU's fused CPU loop (the GPU path goes
+    patch by patch); smaller inputs stay on the GPU engine. A CPU-backed engine stands in for CUDA."""
+    import sys
+
+    from nkf_model.engines import TorchEngine
+
+    rec = sys.modules["nkf_model.reconstruct"]
+
+    class FakeCuda(TorchEngine):
+        def __init__(self):
+            super().__init__("cpu")
+            self.device = "cuda"
+
+    monkeypatch.setattr(rec, "select_engine", lambda device: FakeCuda())
+    p, n = sphere_points(4000, seed=3)
+    assert nkf_model.reconstruct(p, n, resolution=32).stats["engine"].startswith("numba")
+    assert nkf_model.reconstruct(p[:500], n[:500], resolution=32).stats["engine"] == "torch:cuda"
