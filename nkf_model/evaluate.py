@@ -107,11 +107,6 @@ class SparseField:
         """Values at nodes (N, 3); NaN where unknown."""
         return _fk.lookup(self.keys, self.values, np.ascontiguousarray(node_keys(ijk, self.grid_cells)))
 
-    @property
-    def known(self) -> int:
-        """Number of nodes with known values."""
-        return int((self.keys != -1).sum())
-
 
 def _crossing_dense(v: np.ndarray) -> np.ndarray:
     """Cells (N, 3) of a dense node array (r+1, r+1, r+1) whose corners are not all of one sign."""

@@ -221,7 +221,7 @@ def reconstruct(
 
 def _reconstruct(points, normals, *, method, lam, resolution, device, progress, cancel, eps, max_centres, seed,
                  normals_mode, orientation, viewpoints, colors, trim, min_piece, reduce_to, solver, memory_budget,
-                 model, close=False):
+                 model, close):
     vp = check_viewpoints(viewpoints)
     orient = check_orientation(orientation, vp)
     estimate_n = normals_mode == "estimate" or (normals_mode == "auto" and normals is None)
