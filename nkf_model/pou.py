@@ -13,7 +13,8 @@ function is::
 whose weights sum to one everywhere (:mod:`nkf_model._pou_kernels`). Patches with fewer than
 :data:`MIN_PATCH_POINTS` points use a coarse global fit ``f0`` instead (an exact solve on
 :data:`COARSE_POINTS` points picked by farthest-point sampling, sampled once on a 48^3 grid and
-interpolated), which gives the sign far from the data. Cost: the local solves are O(N P^2) in
+interpolated), which gives the field far from the data; given the normals, its sign there is the
+point cloud's winding number's (:mod:`nkf_model.winding`). Cost: the local solves are O(N P^2) in
 total for P points per patch, and every evaluation sums over the centres of 8 patches (about 16 P
 kernel evaluations), whatever N is.
 """
@@ -37,6 +38,7 @@ from .evaluate import GRID_HALF
 from .kernel import homogeneous, split_unit
 from .sampling import farthest_point_sample
 from .solve import KernelFunction, solve_dense
+from .winding import far_field
 
 POINTS_PER_PATCH = 50  # target median of points per patch
 MAX_PATCH_POINTS = 4 * POINTS_PER_PATCH  # larger patches are randomly thinned to this
@@ -112,7 +114,8 @@ class PoUFunction:
     Call it with unit-box points (N, 3) float64; it returns (N,) float64.
     """
 
-    def __init__(self, lo, h, dims, start, count, cu, beta, coarse: KernelFunction, engine: Engine, features=None):
+    def __init__(self, lo, h, dims, start, count, cu, beta, coarse: KernelFunction, engine: Engine, features=None,
+                 far: Callable[[np.ndarray], np.ndarray] | None = None):
         self.lo, self.h, self.dims = float(lo), float(h), int(dims)
         self.start, self.count = start, count
         self.cu = np.ascontiguousarray(cu)  # (D, C)
@@ -125,7 +128,10 @@ class PoUFunction:
         g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
         nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
-        self.f0_grid = np.ascontiguousarray(coarse(nodes).reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
+        f0 = coarse(nodes)
+        if far is not None:
+            f0 = winding_field(far(nodes), f0)
+        self.f0_grid = np.ascontiguousarray(f0.reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
 
     def __call__(self, x: np.ndarray, check: Check = None) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)
@@ -167,6 +173,22 @@ class PoUFunction:
         return out
 
 
+def winding_field(w: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+    """Far-field values ``A (1/2 - w)`` (M,) from winding numbers ``w`` (M,) at the same nodes.
+
+    The sign is the winding number's (inside where ``w > 1/2``); the scale ``A`` is the median of
+    ``|coarse| / |1/2 - w|`` over the nodes where the coarse fit's values ``coarse`` (M,) agree with
+    it in sign, so the far field joins the local fits at about their magnitude.
+    """
+    d = 0.5 - w
+    agree = (np.sign(coarse) == np.sign(d)) & (np.abs(d) > 1e-3)
+    if agree.any():
+        scale = float(np.median(np.abs(coarse[agree]) / np.abs(d[agree])))
+    else:
+        scale = float(np.median(np.abs(coarse))) / 0.5
+    return max(scale, 1e-12) * d
+
+
 def _solve_patch(a_rows: np.ndarray, y: np.ndarray, lam: float):
     """Exact solve of one patch: returns unit centres (m, D) and ``alpha * |c|`` (m,)."""
     u, r = split_unit(a_rows)
@@ -193,6 +215,7 @@ def fit_pou(
     *,
     features=None,
     coarse_a: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
     patch_lam: float | None = None,
     points_per_patch: int = POINTS_PER_PATCH,
     coarse_points: int = COARSE_POINTS,
@@ -225,6 +248,12 @@ def fit_pou(
         ``[x : 1]`` rows here. The coarse fit only decides the sign far from the data, where the
         learned features (trained on inputs of up to 3,000 points) have nothing to condition on;
         with them, it put spurious inside regions far from 10,000-point inputs.
+    normals : (N, 3) float64, optional
+        Unit outward normals of ``x``. When given, the sign far from the data (patches without a
+        local fit) is that of the point cloud's winding number (:mod:`nkf_model.winding`), at the
+        coarse fit's scale, instead of the coarse fit's own sign: a global spline through
+        :data:`COARSE_POINTS` points guesses the sign away from thin parts (both sheets cancel) and
+        put spurious inside regions there (IoU 0.73 instead of 0.96 on a manta ray of 10,000 points).
 
     Returns
     -------
@@ -311,7 +340,8 @@ def fit_pou(
         coarse_points=n_coarse,
         patch_lam=local_lam,
     )
-    return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features), info
+    far = None if normals is None else (lambda q: far_field(q, x, normals, seed=seed))
+    return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far), info
 
 
 def _numba_threads() -> int:

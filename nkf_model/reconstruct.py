@@ -305,7 +305,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
         else:
             fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, check=track.check, step=track.step,
                                    features=phi, coarse_a=None if phi is None else homogeneous(xa),
-                                   patch_lam=patch_lam)
+                                   normals=nrm, patch_lam=patch_lam)
             info = SolveInfo("pou", len(a), pou_info.centres)
             n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
         track.begin("evaluate")
