@@ -38,7 +38,7 @@ from .evaluate import GRID_HALF
 from .kernel import homogeneous, split_unit
 from .sampling import farthest_point_sample
 from .solve import KernelFunction, solve_dense
-from .winding import far_field
+from .winding import FarField, follow_winding, winding_scale
 
 POINTS_PER_PATCH = 50  # target median of points per patch
 MAX_PATCH_POINTS = 4 * POINTS_PER_PATCH  # larger patches are randomly thinned to this
@@ -124,13 +124,15 @@ class PoUFunction:
         self.engine = engine
         self.features = features
         # The coarse fit is smooth and only stands in far from the data: sample it once on a grid
-        # and interpolate, instead of summing its centres at every query.
+        # and interpolate, instead of summing its centres at every query. ``far`` (winding numbers
+        # of the input, nkf_model.winding) overrides its sign where the two disagree.
         g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
         nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
         f0 = coarse(nodes)
         if far is not None:
-            f0 = winding_field(far(nodes), f0)
+            w = far(nodes)
+            f0 = follow_winding(f0, w, winding_scale(w, f0))
         self.f0_grid = np.ascontiguousarray(f0.reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
 
     def __call__(self, x: np.ndarray, check: Check = None) -> np.ndarray:
@@ -171,22 +173,6 @@ class PoUFunction:
             vals = self.engine.kernel_sum(qu[q[s:e]], qr[q[s:e]], cu, np.ones(len(cu)), self.beta[cs])
             np.add.at(out, q[s:e], ww[s:e] * vals)
         return out
-
-
-def winding_field(w: np.ndarray, coarse: np.ndarray) -> np.ndarray:
-    """Far-field values ``A (1/2 - w)`` (M,) from winding numbers ``w`` (M,) at the same nodes.
-
-    The sign is the winding number's (inside where ``w > 1/2``); the scale ``A`` is the median of
-    ``|coarse| / |1/2 - w|`` over the nodes where the coarse fit's values ``coarse`` (M,) agree with
-    it in sign, so the far field joins the local fits at about their magnitude.
-    """
-    d = 0.5 - w
-    agree = (np.sign(coarse) == np.sign(d)) & (np.abs(d) > 1e-3)
-    if agree.any():
-        scale = float(np.median(np.abs(coarse[agree]) / np.abs(d[agree])))
-    else:
-        scale = float(np.median(np.abs(coarse))) / 0.5
-    return max(scale, 1e-12) * d
 
 
 def _solve_patch(a_rows: np.ndarray, y: np.ndarray, lam: float):
@@ -249,9 +235,9 @@ def fit_pou(
         learned features (trained on inputs of up to 3,000 points) have nothing to condition on;
         with them, it put spurious inside regions far from 10,000-point inputs.
     normals : (N, 3) float64, optional
-        Unit outward normals of ``x``. When given, the sign far from the data (patches without a
-        local fit) is that of the point cloud's winding number (:mod:`nkf_model.winding`), at the
-        coarse fit's scale, instead of the coarse fit's own sign: a global spline through
+        Unit outward normals of ``x``. When given, far from the data (patches without a local fit)
+        the coarse fit gives way to the point cloud's winding number (:mod:`nkf_model.winding`)
+        wherever their signs disagree, at the coarse fit's scale: a global spline through
         :data:`COARSE_POINTS` points guesses the sign away from thin parts (both sheets cancel) and
         put spurious inside regions there (IoU 0.73 instead of 0.96 on a manta ray of 10,000 points).
 
@@ -340,7 +326,7 @@ def fit_pou(
         coarse_points=n_coarse,
         patch_lam=local_lam,
     )
-    far = None if normals is None else (lambda q: far_field(q, x, normals, seed=seed))
+    far = None if normals is None else FarField(x, normals, seed=seed)
     return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far), info
 
 

