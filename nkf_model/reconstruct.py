@@ -60,9 +60,11 @@ FALKON_TOL = 1e-6
 BLAS_THREADS = 1
 # Global fits (dense, Falkon) follow the point cloud's winding number away from the data: the blend
 # starts FAR_START and ends FAR_END patch spacings (pou.patch_spacing, about 0.1 of the box at 1,000
-# points) from the nearest point (nkf_model.winding.BlendedField). Chosen on 14 training-split meshes:
-# half-surface inputs of 3,000 points, learned kernel, IoU 0.4242 without, 0.5084 / 0.5142 / 0.5112
-# with (1, 2) / (1.5, 3) / (2, 4); whole inputs of 1,000 and 3,000 points (splines) unchanged.
+# points) from the nearest point (nkf_model.winding.BlendedField). Chosen on 14 training-split meshes
+# with a first version that took the winding number's sign everywhere past the blend: half-surface
+# inputs of 3,000 points, learned kernel, IoU 0.4242 without, 0.5084 / 0.5142 / 0.5112 with (1, 2) /
+# (1.5, 3) / (2, 4); whole inputs of 1,000 and 3,000 points (splines) unchanged. The rule kept keeps
+# the fit wherever its sign agrees with the winding number (docs/benchmarks.md has the 52-mesh runs).
 FAR_START = 1.5
 FAR_END = 3.0
 
