@@ -115,7 +115,7 @@ class PoUFunction:
     """
 
     def __init__(self, lo, h, dims, start, count, cu, beta, coarse: KernelFunction, engine: Engine, features=None,
-                 far: Callable[[np.ndarray], np.ndarray] | None = None):
+                 far: FarField | None = None, check: Check = None):
         self.lo, self.h, self.dims = float(lo), float(h), int(dims)
         self.start, self.count = start, count
         self.cu = np.ascontiguousarray(cu)  # (D, C)
@@ -129,9 +129,9 @@ class PoUFunction:
         g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
         nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
-        f0 = coarse(nodes)
+        f0 = coarse(nodes, check=check)
         if far is not None:
-            w = far(nodes)
+            w = far(nodes, check)
             f0 = follow_winding(f0, w, winding_scale(w, f0))
         self.f0_grid = np.ascontiguousarray(f0.reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
 
@@ -326,8 +326,8 @@ def fit_pou(
         coarse_points=n_coarse,
         patch_lam=local_lam,
     )
-    far = None if normals is None else FarField(x, normals, seed=seed)
-    return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far), info
+    far = None if normals is None else FarField(x, normals, seed=seed, check=check)
+    return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far, check=check), info
 
 
 def _numba_threads() -> int:

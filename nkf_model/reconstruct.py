@@ -314,7 +314,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
             n_centres = len(idx)
         if kind != "pou":
             h = patch_spacing(x, seed=seed)
-            fn = BlendedField(fn, x, nrm, FAR_START * h, FAR_END * h, GRID_HALF, seed=seed)
+            fn = BlendedField(fn, x, nrm, FAR_START * h, FAR_END * h, GRID_HALF, seed=seed, check=track.check)
         else:
             fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, check=track.check, step=track.step,
                                    features=phi, coarse_a=None if phi is None else homogeneous(xa),

@@ -27,22 +27,7 @@ from .sampling import farthest_point_sample
 AREA_NEIGHBOURS = 8  # a point's area: the disc through its 8th neighbour, shared by 8 points
 FAR_CLUSTERS = 1000  # clusters of the winding-number sum
 FAR_BETA = 2.0  # a cluster counts as one dipole beyond this many of its radii (Barill et al.: 2)
-
-
-@nb.njit(parallel=True, nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
-def _dipole_sum(q, x, m):  # pragma: no cover - compiled
-    out = np.empty(q.shape[0])
-    for i in nb.prange(q.shape[0]):
-        s = 0.0
-        for j in range(x.shape[0]):
-            dx = x[j, 0] - q[i, 0]
-            dy = x[j, 1] - q[i, 1]
-            dz = x[j, 2] - q[i, 2]
-            r2 = dx * dx + dy * dy + dz * dz
-            if r2 > 0.0:
-                s += (m[j, 0] * dx + m[j, 1] * dy + m[j, 2] * dz) / (r2 * math.sqrt(r2))
-        out[i] = s / (4.0 * math.pi)
-    return out
+FAR_CHUNK = 16_384  # queries per compiled call of FarField, between cancellation checks
 
 
 def point_areas(points: np.ndarray, k: int = AREA_NEIGHBOURS) -> np.ndarray:
@@ -71,9 +56,11 @@ def winding_number(queries: np.ndarray, points: np.ndarray, normals: np.ndarray,
     areas : (N,) float64
         Area per point (:func:`point_areas`).
     """
+    x = np.ascontiguousarray(points, dtype=np.float64)
     m = np.ascontiguousarray(normals * areas[:, None], dtype=np.float64)
-    return _dipole_sum(np.ascontiguousarray(queries, dtype=np.float64),
-                       np.ascontiguousarray(points, dtype=np.float64), m)
+    # Every point its own cluster of radius 0: always summed as a dipole (a query on a point skips it).
+    return _clustered_sum(np.ascontiguousarray(queries, dtype=np.float64), x, m, np.zeros(len(x)),
+                          np.arange(len(x) + 1, dtype=np.int64), x, m)
 
 
 @nb.njit(parallel=True, nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
@@ -121,10 +108,12 @@ class FarField:
     clusters : int
         Number of clusters (every point is its own when there are fewer points).
 
-    Call it with queries (Q, 3) float64; it returns (Q,) float64.
+    Call it with queries (Q, 3) float64 (and ``check``, called between chunks of queries); it
+    returns (Q,) float64. ``check`` given to the constructor is called between its set-up steps.
     """
 
-    def __init__(self, points: np.ndarray, normals: np.ndarray, clusters: int = FAR_CLUSTERS, seed: int = 0):
+    def __init__(self, points: np.ndarray, normals: np.ndarray, clusters: int = FAR_CLUSTERS, seed: int = 0,
+                 check=None):
         points = np.asarray(points, dtype=np.float64)
         normals = np.asarray(normals, dtype=np.float64)
         if len(points) <= AREA_NEIGHBOURS:
@@ -132,7 +121,11 @@ class FarField:
         area = point_areas(points)
         moment = normals * area[:, None]
         k = min(clusters, len(points))
+        if check is not None:
+            check()
         centres = points[farthest_point_sample(points, k, seed=seed)]
+        if check is not None:
+            check()
         _, owner = cKDTree(centres).query(points)
         order = np.argsort(owner, kind="stable")
         owner, points, moment, area = owner[order], points[order], moment[order], area[order]
@@ -154,9 +147,14 @@ class FarField:
         self._first = first
         self._x, self._m = np.ascontiguousarray(points), np.ascontiguousarray(moment)
 
-    def __call__(self, queries: np.ndarray) -> np.ndarray:
+    def __call__(self, queries: np.ndarray, check=None) -> np.ndarray:
         q = np.ascontiguousarray(queries, dtype=np.float64)
-        return _clustered_sum(q, *self._args, self._first, self._x, self._m)
+        out = np.empty(len(q))
+        for s in range(0, len(q), FAR_CHUNK):  # ``check`` (cancellation) between chunks
+            if check is not None:
+                check()
+            out[s : s + FAR_CHUNK] = _clustered_sum(q[s : s + FAR_CHUNK], *self._args, self._first, self._x, self._m)
+        return out
 
 
 def far_field(queries: np.ndarray, points: np.ndarray, normals: np.ndarray, clusters: int = FAR_CLUSTERS,
@@ -219,17 +217,17 @@ class BlendedField:
     """
 
     def __init__(self, fn, points: np.ndarray, normals: np.ndarray, start: float, end: float, box: float,
-                 calibration: int = 4000, seed: int = 0):
+                 calibration: int = 4000, seed: int = 0, check=None):
         if not 0 < start < end:
             raise ValueError(f"need 0 < start < end, got {start!r}, {end!r}")
         self.fn = fn
         self.tree = cKDTree(points)
-        self.far = FarField(points, normals, seed=seed)
+        self.far = FarField(points, normals, seed=seed, check=check)
         self.start, self.end = float(start), float(end)
         q = np.random.default_rng(seed).uniform(-box, box, (calibration, 3))
         d, _ = self.tree.query(q, distance_upper_bound=self.start)
         q = q[~np.isfinite(d)]
-        self.scale = winding_scale(self.far(q), fn(q)) if len(q) else 1.0
+        self.scale = winding_scale(self.far(q, check), fn(q, check=check)) if len(q) else 1.0
 
     def __call__(self, x: np.ndarray, check=None) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)
@@ -242,5 +240,5 @@ class BlendedField:
         if far.any():
             bf = b[far]
             ff = f[far]
-            f[far] = (1.0 - bf) * ff + bf * follow_winding(ff, self.far(x[far]), self.scale)
+            f[far] = (1.0 - bf) * ff + bf * follow_winding(ff, self.far(x[far], check), self.scale)
         return f
