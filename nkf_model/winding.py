@@ -222,6 +222,7 @@ class BlendedField:
             raise ValueError(f"need 0 < start < end, got {start!r}, {end!r}")
         self.fn = fn
         self.tree = cKDTree(points)
+        self.near = NearCells(points, start)
         self.far = FarField(points, normals, seed=seed, check=check)
         self.start, self.end = float(start), float(end)
         q = np.random.default_rng(seed).uniform(-box, box, (calibration, 3))
@@ -232,13 +233,67 @@ class BlendedField:
     def __call__(self, x: np.ndarray, check=None) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)
         f = self.fn(x, check=check)
-        # Beyond ``end`` the KD-tree gives inf, which the clamp turns into b = 1.
-        d, _ = self.tree.query(x, distance_upper_bound=self.end)
+        # Most queries lie in cells wholly within ``start`` of a point (b = 0): only the rest go to the
+        # KD-tree. Beyond ``end`` it gives inf, which the clamp turns into b = 1.
+        rest = np.flatnonzero(~self.near(x))
+        if len(rest) == 0:
+            return f
+        xr = x[rest]
+        d, _ = self.tree.query(xr, distance_upper_bound=self.end)
         t = np.clip((d - self.start) / (self.end - self.start), 0.0, 1.0)
         b = t * t * (3.0 - 2.0 * t)
         far = b > 0
         if far.any():
             bf = b[far]
-            ff = f[far]
-            f[far] = (1.0 - bf) * ff + bf * follow_winding(ff, self.far(x[far], check), self.scale)
+            idx = rest[far]
+            ff = f[idx]
+            f[idx] = (1.0 - bf) * ff + bf * follow_winding(ff, self.far(xr[far], check), self.scale)
         return f
+
+
+class NearCells:
+    """A conservative, fast test for "within ``radius`` of some point": cells of a regular grid that
+    lie wholly within ``radius`` of an input point.
+
+    A point in cell ``k`` (size ``c``) is within ``|o| c + c sqrt(3)`` of everything in cell ``k + o``,
+    so the cells ``k + o`` with ``|o| c <= radius - c sqrt(3)`` are marked for every point's cell.
+    ``c = radius / 6``, or coarser so that the grid has at most ``max_cells`` cells along an axis.
+
+    Call with queries (Q, 3) float64 (unit-box units, like ``points``); returns (Q,) bool, True only
+    where the query is within ``radius`` of a point (False says nothing).
+    """
+
+    def __init__(self, points: np.ndarray, radius: float, max_cells: int = 256, chunk: int = 1 << 21):
+        points = np.asarray(points, dtype=np.float64)
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        c = max(radius / 6.0, float(np.max(hi - lo)) / max_cells, 1e-12)
+        reach = radius - c * math.sqrt(3.0)
+        self.grid = None
+        if reach < 0:
+            return
+        r = int(reach // c)
+        o = np.stack(np.meshgrid(*[np.arange(-r, r + 1)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+        o = o[(o * o).sum(axis=1) * (c * c) <= reach * reach]
+        self.lo, self.c = lo, c
+        # Padded by r cells on each side so that a point's cell plus any offset stays inside.
+        self.shape = tuple(int(v) for v in np.floor((hi - lo) / c).astype(np.int64) + 1 + 2 * r)
+        self.pad = r
+        k = np.unique(np.floor((points - lo) / c).astype(np.int64) + r, axis=0)
+        flat_k = np.ravel_multi_index(k.T, self.shape)
+        flat_o = np.ravel_multi_index((o + r).T, self.shape) - np.ravel_multi_index((r, r, r), self.shape)
+        grid = np.zeros(int(np.prod(self.shape)), dtype=bool)
+        step = max(1, chunk // len(flat_o))
+        for i in range(0, len(flat_k), step):
+            grid[(flat_k[i : i + step, None] + flat_o[None, :]).ravel()] = True
+        self.grid = grid.reshape(self.shape)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(x), dtype=bool)
+        if self.grid is None or len(x) == 0:
+            return out
+        k = np.floor((x - self.lo) / self.c)
+        k += self.pad
+        inside = np.all((k >= 0) & (k < np.asarray(self.shape)), axis=1)
+        ki = k[inside].astype(np.int64)
+        out[inside] = self.grid[ki[:, 0], ki[:, 1], ki[:, 2]]
+        return out

@@ -112,3 +112,20 @@ def test_follow_winding_keeps_the_fit_where_the_signs_agree():
     fitted = np.array([2.0, -1.0, 3.0, -4.0])
     w = np.array([0.0, 1.0, 1.0, 0.0])  # agrees at 0 and 1
     np.testing.assert_allclose(follow_winding(fitted, w, 2.0), [2.0, -1.0, -1.0, 1.0])
+
+
+def test_near_cells_never_claims_a_point_farther_than_the_radius():
+    from scipy.spatial import cKDTree
+
+    from nkf_model.winding import NearCells
+
+    rng = np.random.default_rng(9)
+    p = sphere_points(1000, radius=0.4, seed=10)[0]
+    q = np.concatenate([rng.uniform(-0.6, 0.6, (50_000, 3)), p + rng.normal(scale=0.05, size=p.shape)])
+    d, _ = cKDTree(p).query(q)
+    for radius, spared in ((0.15, 0.6), (0.03, 0.3)):
+        near = NearCells(p, radius)(q)
+        assert not (near & (d > radius)).any()
+        assert near.sum() > spared * (d <= radius).sum()  # and it spares the KD-tree many near queries
+    # A radius below the grid's cell size marks nothing, which is still correct.
+    assert not NearCells(p, 1e-4)(q).any()
