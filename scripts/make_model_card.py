@@ -2,7 +2,7 @@
 
     python scripts/make_model_card.py --weights nkf_model/weights/nkf_default.safetensors \
         --run runs/nkf --notes docs/nkf.md --bench docs/nkf-benchmark.md \
-        --ablation docs/nkf-ablation.md --out nkf_model/weights/MODEL_CARD.md
+        --ablation docs/nkf-ablation.md --config configs/nkf.toml --out nkf_model/weights/MODEL_CARD.md
 
 The card gets: the file and its checksum, the network's config, how and how long it was trained
 (from the weights' metadata and the run's log), the held-out validation table, the hand-written
@@ -37,6 +37,7 @@ def main(argv=None) -> int:
     ap.add_argument("--bench", default=None)
     ap.add_argument("--ablation", default=None)
     ap.add_argument("--out", required=True)
+    ap.add_argument("--config", default="configs/nkf.toml", help="the config file the run was started with")
     args = ap.parse_args(argv)
 
     path = Path(args.weights)
@@ -67,7 +68,7 @@ def main(argv=None) -> int:
         "|---|---|",
     ]
     L += [f"| `{k}` | {v} |" for k, v in config.to_dict().items()]
-    L += ["", "## Training config", "", "From `configs/nkf.toml` as the run read it:", "", "```json",
+    L += ["", "## Training config", "", f"From `{args.config}` as the run read it:", "", "```json",
           json.dumps({k: v for k, v in cfg.items() if k != "model"}, indent=1, sort_keys=True), "```", ""]
     hold = training.get("holdout_iou", {})
     base = training.get("holdout_iou_splines", {})

@@ -83,3 +83,18 @@ def test_reconstruct_reports_the_local_regularisation():
     assert m.stats["pou"]["patch_lam"] > 1e-5
     p, n = _cube_faces(8000, 0.0, seed=4)
     assert nkf_model.reconstruct(p, n, resolution=64).stats["pou"]["patch_lam"] < 1e-6
+
+
+def test_the_learned_kernel_scales_the_local_regularisation_to_its_magnitude(tmp_path):
+    from nkf_helpers import tiny_weights
+
+    from nkf_model.reconstruct import NKF_NOISE_LAM_FACTOR
+
+    p, n = _sphere(8000, 0.005, seed=4)
+    splines = nkf_model.reconstruct(p, n, resolution=48).stats["pou"]["patch_lam"]
+    w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)
+    m = nkf_model.reconstruct(p, n, method="nkf", weights=w, resolution=48, device="cpu")
+    assert m.stats["solver"] == "pou"
+    # Same points, same noise estimate; the tiny network's features add little to |a|^2.
+    ratio = m.stats["pou"]["patch_lam"] / splines
+    assert NKF_NOISE_LAM_FACTOR <= ratio < 1.5 * NKF_NOISE_LAM_FACTOR
