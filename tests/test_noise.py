@@ -91,7 +91,7 @@ def test_the_learned_kernel_scales_the_local_regularisation_to_its_magnitude(tmp
     from nkf_model.reconstruct import NKF_NOISE_LAM_FACTOR
 
     p, n = _sphere(8000, 0.005, seed=4)
-    splines = nkf_model.reconstruct(p, n, resolution=48).stats["pou"]["patch_lam"]
+    splines = nkf_model.reconstruct(p, n, method="splines", resolution=48).stats["pou"]["patch_lam"]
     w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)
     m = nkf_model.reconstruct(p, n, method="nkf", weights=w, resolution=48, device="cpu")
     assert m.stats["solver"] == "pou"
