@@ -34,7 +34,7 @@ def assert_watertight_outward(mesh: Mesh):
 
 def test_sphere_within_chamfer_bound(sphere500):
     p, n = sphere500
-    m = nkf_model.reconstruct(p, n, resolution=64, device="cpu")
+    m = nkf_model.reconstruct(p, n, method="splines", resolution=64, device="cpu")
     assert m.vertices.dtype == np.float32 and m.vertices.shape[1] == 3
     assert m.faces.dtype == np.int32 and m.faces.shape[1] == 3
     assert m.normals.shape == m.vertices.shape
@@ -66,7 +66,7 @@ def test_torus_within_chamfer_bound():
 def test_output_in_the_input_frame(center, radius):
     """Coordinates around 1e6, tiny objects and large ones come back where they were."""
     p, n = sphere_points(400, radius=radius, center=center, seed=3)
-    m = nkf_model.reconstruct(p, n, resolution=48, device="cpu")
+    m = nkf_model.reconstruct(p, n, method="splines", resolution=48, device="cpu")
     local = m.local_vertices.astype(np.float64)
     world = m.center + local
     r = np.linalg.norm(world - np.asarray(center), axis=1)
