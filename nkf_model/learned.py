@@ -120,8 +120,15 @@ class LearnedKernel:
             torch.set_num_threads(threads)
         return np.ascontiguousarray(g.permute(1, 2, 3, 0).double().numpy())
 
-    def prepare(self, xa: np.ndarray, y: np.ndarray) -> Prepared:
-        """Features, weights and homogeneous constraints for augmented points (see the module)."""
+    def prepare(self, xa: np.ndarray, y: np.ndarray, feature_scale: float = 1.0) -> Prepared:
+        """Features, weights and homogeneous constraints for augmented points (see the module).
+
+        ``feature_scale`` in [0, 1] multiplies the learned spatial features (not the learned constant
+        feature): 0 leaves the Neural Spline kernel on ``[x : c : 1]``, the learned kernel's scale
+        without its conditioning on the input (see ``nkf_model.reconstruct.NKF_FEATURE_NOISE``).
+        """
+        if not 0.0 <= feature_scale <= 1.0:
+            raise ValueError(f"feature_scale must be in [0, 1], got {feature_scale!r}")
         grid = self.feature_grid(xa, y)
         d = self.net.learned_dim
         feat = np.ascontiguousarray(grid[..., :d])
@@ -130,6 +137,8 @@ class LearnedKernel:
 
         def phi(x):
             f = _gated_trilinear(feat, gate, np.ascontiguousarray(x, dtype=np.float64), GRID_HALF)
+            if feature_scale != 1.0:
+                f *= feature_scale
             if const is None:
                 return f
             out = np.empty((len(f), d + 1))

@@ -114,3 +114,42 @@ def test_cli_weights(tmp_path, capsys, sphere500):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1 and not out2.exists()
     assert len(err) == 1 and err[0].startswith("nkf: error:") and str(bad) in err[0]
+
+
+def test_feature_scale_multiplies_only_the_learned_features(tmp_path):
+    from nkf_model.augment import augment
+    from nkf_model.kernel import homogeneous
+    from nkf_model.weights import load_weights
+
+    model = load_weights(tiny_weights(tmp_path / "w.safetensors", gate=0.3))
+    p, n = sphere_points(400, radius=0.4, seed=1)
+    xa, y = augment(p, n, 0.01)
+    full = model.prepare(xa, y)
+    half = model.prepare(xa, y, feature_scale=0.5)
+    none = model.prepare(xa, y, feature_scale=0.0)
+    assert np.abs(full.phi(xa)).max() > 1e-3  # the test means something: the features are not zero
+    np.testing.assert_allclose(half.phi(xa), 0.5 * full.phi(xa), rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(none.a, homogeneous(xa, np.zeros((len(xa), model.feature_dim))))
+    with pytest.raises(ValueError, match="feature_scale"):
+        model.prepare(xa, y, feature_scale=1.5)
+
+
+def test_dense_clean_input_fades_the_learned_features(tmp_path):
+    # Above the training sizes (NKF_TRAINED_POINTS) the learned features are kept in proportion to the
+    # estimated noise: clean dense input gets (almost) none, noisy dense input all, small input all.
+    from nkf_helpers import box_mesh
+
+    from nkf_model.reconstruct import NKF_TRAINED_POINTS
+
+    w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)
+    v, f = box_mesh()
+    p, n = sample_surface(v, f, NKF_TRAINED_POINTS + 500, np.random.default_rng(4))
+    clean = nkf_model.reconstruct(p, n, method="nkf", weights=w, resolution=32, device="cpu")
+    assert clean.stats["feature_scale"] < 0.1
+    noisy = p + np.random.default_rng(5).normal(scale=0.004, size=p.shape)  # 0.005 of the unit box
+    m = nkf_model.reconstruct(noisy, n, method="nkf", weights=w, resolution=32, device="cpu")
+    assert m.stats["feature_scale"] == 1.0
+    small = nkf_model.reconstruct(p[:NKF_TRAINED_POINTS], n[:NKF_TRAINED_POINTS], method="nkf", weights=w,
+                                  resolution=32, device="cpu")
+    assert small.stats["feature_scale"] == 1.0
+    assert nkf_model.reconstruct(p[:500], n[:500], method="splines", resolution=32).stats["feature_scale"] is None
