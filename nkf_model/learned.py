@@ -136,6 +136,10 @@ class LearnedKernel:
         const = self.net.constant_feature() if self.config.const_channel else None
 
         def phi(x):
+            if feature_scale == 0.0:
+                # No spatial features: the kernel on [x : c : 1] (or [x : 1]), the same Gram as with
+                # zero features and cheaper to evaluate.
+                return np.full((len(x), 1 if const is not None else 0), const if const is not None else 0.0)
             f = _gated_trilinear(feat, gate, np.ascontiguousarray(x, dtype=np.float64), GRID_HALF)
             if feature_scale != 1.0:
                 f *= feature_scale

@@ -116,20 +116,32 @@ def test_cli_weights(tmp_path, capsys, sphere500):
     assert len(err) == 1 and err[0].startswith("nkf: error:") and str(bad) in err[0]
 
 
-def test_feature_scale_multiplies_only_the_learned_features(tmp_path):
+@pytest.mark.parametrize("const", [False, True])
+def test_feature_scale_multiplies_only_the_learned_features(tmp_path, const):
+    from dataclasses import replace
+
+    from nkf_helpers import TINY
+
     from nkf_model.augment import augment
-    from nkf_model.kernel import homogeneous
+    from nkf_model.kernel import homogeneous, ns_kernel
     from nkf_model.weights import load_weights
 
-    model = load_weights(tiny_weights(tmp_path / "w.safetensors", gate=0.3))
+    model = load_weights(tiny_weights(tmp_path / "w.safetensors", gate=0.3, config=replace(TINY, const_channel=const)))
     p, n = sphere_points(400, radius=0.4, seed=1)
     xa, y = augment(p, n, 0.01)
     full = model.prepare(xa, y)
     half = model.prepare(xa, y, feature_scale=0.5)
     none = model.prepare(xa, y, feature_scale=0.0)
-    assert np.abs(full.phi(xa)).max() > 1e-3  # the test means something: the features are not zero
-    np.testing.assert_allclose(half.phi(xa), 0.5 * full.phi(xa), rtol=1e-12, atol=1e-15)
-    np.testing.assert_array_equal(none.a, homogeneous(xa, np.zeros((len(xa), model.feature_dim))))
+    learned = slice(1 if const else 0, None)
+    assert np.abs(full.phi(xa)[:, learned]).max() > 1e-3  # the features are not zero to begin with
+    np.testing.assert_allclose(half.phi(xa)[:, learned], 0.5 * full.phi(xa)[:, learned], rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(half.phi(xa)[:, :1 if const else 0], full.phi(xa)[:, :1 if const else 0])
+    # Scale 0: the same kernel as zero learned features (the constant kept), in fewer numbers.
+    zero = full.phi(xa).copy()
+    zero[:, learned] = 0.0
+    np.testing.assert_allclose(ns_kernel(none.a, none.a), ns_kernel(homogeneous(xa, zero), homogeneous(xa, zero)),
+                               rtol=1e-10)
+    assert none.a.shape[1] == (5 if const else 4)
     with pytest.raises(ValueError, match="feature_scale"):
         model.prepare(xa, y, feature_scale=1.5)
 
