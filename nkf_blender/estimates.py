@@ -57,19 +57,19 @@ def outlook(count: int, settings: Settings, estimate_normals: bool, colors: bool
     """
     return _outlook(
         int(count), int(settings.max_points), int(settings.resolution), bool(estimate_normals),
-        bool(colors), settings.trim is not None, resolve_budget(settings.memory_budget),
+        bool(colors), settings.trim is not None, resolve_budget(settings.memory_budget), str(settings.method),
     )
 
 
 @lru_cache(maxsize=64)
-def _outlook(count, max_points, resolution, estimate_normals, colors, trim, budget) -> Outlook:
+def _outlook(count, max_points, resolution, estimate_normals, colors, trim, budget, method="splines") -> Outlook:
     import nkf_model
 
     n = points_used(count, max_points)
 
     def est(n_points, res):
         return nkf_model.estimate(n_points, resolution=res, estimate_normals=estimate_normals, colors=colors,
-                                  trim=trim)
+                                  trim=trim, method=method)
 
     e = est(n, resolution)
     problem = ""

@@ -183,7 +183,7 @@ def cmd_reconstruct(args) -> int:
         colors = None if colors is None else colors[keep]
     est = budget_mod.plan(len(points), resolution=args.resolution, estimate_normals=estimate_n, solver=args.solver,
                           max_centres=DEFAULT_CENTRES, reduce_to=reduce_to, colors=colors is not None,
-                          trim=trim is not None)
+                          trim=trim is not None, method=args.method)
     if args.dry_run:
         print(f"{args.input}: {len(points):,} points; estimate: {est.summary()}")
         budget_mod.check(est, memory_budget)

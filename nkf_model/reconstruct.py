@@ -261,7 +261,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
     n_in = _row_count(points)
     plan = budget.plan(
         n_in, resolution=resolution, estimate_normals=estimate_n, solver=solver, max_centres=max_centres,
-        reduce_to=reduce_to, colors=colors is not None, trim=trim is not None,
+        reduce_to=reduce_to, colors=colors is not None, trim=trim is not None, method=method,
     )
     budget.check(plan, memory_budget)
 

@@ -29,6 +29,22 @@ def test_estimate_is_cheap_and_grows_with_the_job():
     assert "GB" in e.summary() and "pou" in e.summary()
 
 
+def test_learned_kernel_estimate_is_slower(tmp_path):
+    # method="nkf" evaluates 13-number kernel inputs in the general loops: the estimate says so, and
+    # reconstruct() checks the budget with the learned kernel's estimate (the timing itself is
+    # measured by the benchmarks, docs/scans.md).
+    from nkf_helpers import tiny_weights
+
+    s = nkf_model.estimate(100_000, resolution=256)
+    n = nkf_model.estimate(100_000, resolution=256, method="nkf")
+    assert n.seconds > 2 * s.seconds and n.peak_bytes > s.peak_bytes
+    w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)
+    p, q = sphere_points(500, seed=2)
+    m = nkf_model.reconstruct(p, q, method="nkf", weights=w, resolution=32, device="cpu")
+    assert m.stats["estimate"]["seconds"] == pytest.approx(nkf_model.estimate(500, resolution=32, method="nkf").seconds)
+    assert m.stats["estimate"]["seconds"] > nkf_model.estimate(500, resolution=32).seconds
+
+
 def test_oversized_job_is_refused_before_allocating():
     p, n = sphere_points(60_000, seed=0)
     tracemalloc.start()
