@@ -200,6 +200,7 @@ def test_panel_shows_the_estimate_for_the_object_and_settings(scene, bpy_module,
     pts, nrm = fibonacci_sphere(400, 1.0)
     import_ply(bpy, write_ply(tmp_path / "ball.ply", pts, nrm))
     s = bpy.context.scene.nkf_settings
+    s.method = "SPLINES"
     s.resolution = 64
     text = draw(bpy).joined()
     expected = nkf_model.estimate(400, resolution=64).summary()
@@ -209,6 +210,10 @@ def test_panel_shows_the_estimate_for_the_object_and_settings(scene, bpy_module,
     s.resolution = 256
     expected = nkf_model.estimate(100, resolution=256, estimate_normals=True).summary()
     assert expected != nkf_model.estimate(400, resolution=64).summary()
+    assert f"Estimate: {expected}" in draw(bpy).joined()
+    # The learned kernel's estimate is its own (slower kernel evaluations).
+    s.method = "NKF"
+    expected = nkf_model.estimate(100, resolution=256, estimate_normals=True, method="nkf").summary()
     assert f"Estimate: {expected}" in draw(bpy).joined()
 
 
