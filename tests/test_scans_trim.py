@@ -23,6 +23,7 @@ def test_untrimmed_open_hemisphere_closes_far_from_the_samples(hemisphere):
     m = nkf_model.reconstruct(p, n, resolution=48, device="cpu")
     d, _ = cKDTree(p).query(m.vertices)
     assert d.max() > 0.2  # the closed surface runs far below the data
+    assert m.stats["far_field"] is True  # closed output: the sign far away follows the winding number
 
 
 def test_trim_removes_surface_far_from_samples(hemisphere):
@@ -30,6 +31,7 @@ def test_trim_removes_surface_far_from_samples(hemisphere):
     m = nkf_model.reconstruct(p, n, resolution=48, device="cpu", trim=4.0)
     st = m.stats["trim"]
     assert st["trimmed_faces"] > 0 and st["threshold"] > 0
+    assert m.stats["far_field"] is False  # an open scan has no inside: no winding-number far field
     d, _ = cKDTree(p).query(m.vertices)
     assert d.max() <= st["threshold"] + 1e-6
     assert m.vertices[:, 2].min() > -0.1  # nothing left below the open rim
