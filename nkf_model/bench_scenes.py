@@ -153,19 +153,19 @@ def format_scenes(rows, n_points, resolution, noise, note="") -> str:
     return "\n".join(lines)
 
 
-def run_large(entries, sizes, resolution, cache, log=print):
+def run_large(entries, sizes, resolution, cache, methods=("splines",), log=print):
     rows = []
     for e in entries:
         ref = reference(e, cache)
         v0, f0 = corpus.load(e)
         for n in sizes:
             pts, nrm = corpus.sample_input(v0, f0, n, 0.002, corpus.stable_seed("large", e.name, n))
-            variants = [("default", DEFAULT_REDUCE_TO)]
+            variants = [(method, "default", DEFAULT_REDUCE_TO) for method in methods]
             if n > DEFAULT_REDUCE_TO:
-                variants.append(("all points", None))
-            for label, reduce_to in variants:
-                def fn(reduce_to=reduce_to, pts=pts, nrm=nrm):
-                    return reconstruct(pts, nrm, method="splines", resolution=resolution, device="cpu",
+                variants += [(method, "all points", None) for method in methods]
+            for method, label, reduce_to in variants:
+                def fn(reduce_to=reduce_to, pts=pts, nrm=nrm, method=method):
+                    return reconstruct(pts, nrm, method=method, resolution=resolution, device="cpu",
                                        reduce_to=reduce_to)
 
                 m, dt, mem, err = _measure(fn)
@@ -177,29 +177,30 @@ def run_large(entries, sizes, resolution, cache, log=print):
                     r = m.stats.get("reduction")
                     red = f"voxel grid to {r['to']:,}" if r else "none"
                     solver = m.stats["solver"]
-                s.update(mesh=e.name, n=n, variant=label, time=dt, mem=mem, err=err, reduction=red, solver=solver)
+                s.update(mesh=e.name, n=n, variant=label, method=method, time=dt, mem=mem, err=err, reduction=red,
+                         solver=solver)
                 rows.append(s)
-                log(f"  {e.name:36s} n={n:>9,} {label:10s} {red:24s} IoU {s['iou']:.4f} CD {s['chamfer_l1']:.5f} "
+                log(f"  {e.name:36s} n={n:>9,} {method:8s} {label:10s} {red:24s} IoU {s['iou']:.4f} CD {s['chamfer_l1']:.5f} "
                     f"t {dt:6.1f}s mem {mem / 2**20:6.0f} MiB" + (f" FAILED {err}" if err else ""))
     return rows
 
 
 def format_large(rows, resolution) -> str:
     lines = [
-        "| points | variant | reduction | solver | mean IoU | mean Chamfer-L1 | mean F-score | mean time (s) "
-        "| max time (s) | peak memory (MiB) |",
-        "|---:|---|---|---|---:|---:|---:|---:|---:|---:|",
+        "| points | method | variant | reduction | solver | mean IoU | mean Chamfer-L1 | mean F-score "
+        "| mean time (s) | max time (s) | peak memory (MiB) |",
+        "|---:|---|---|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     keys = []
     for r in rows:
-        if (r["n"], r["variant"]) not in keys:
-            keys.append((r["n"], r["variant"]))
-    for n, variant in keys:
-        sel = [r for r in rows if r["n"] == n and r["variant"] == variant]
+        if (r["n"], r["method"], r["variant"]) not in keys:
+            keys.append((r["n"], r["method"], r["variant"]))
+    for n, method, variant in keys:
+        sel = [r for r in rows if r["n"] == n and r["method"] == method and r["variant"] == variant]
         reds = sorted({r["reduction"] for r in sel})
         cds = [r["chamfer_l1"] for r in sel if np.isfinite(r["chamfer_l1"])]
         lines.append(
-            f"| {n:,} | {variant} | {'; '.join(reds)} | {sel[0]['solver']} "
+            f"| {n:,} | {method} | {variant} | {'; '.join(reds)} | {sel[0]['solver']} "
             f"| {statistics.mean(r['iou'] for r in sel):.4f} "
             f"| {statistics.mean(cds) if cds else float('nan'):.5f} | {statistics.mean(r['fscore'] for r in sel):.4f} "
             f"| {statistics.mean(r['time'] for r in sel):.1f} | {max(r['time'] for r in sel):.1f} "
@@ -210,7 +211,7 @@ def format_large(rows, resolution) -> str:
     return "\n".join(lines)
 
 
-def run_estimates(log=print):
+def run_estimates(methods=("splines",), log=print):
     """Predicted against measured time and peak memory over a spread of inputs and settings."""
     from .budget import estimate
 
@@ -223,29 +224,29 @@ def run_estimates(log=print):
         ("quaternius__Donut", 1_000_000, 256, True), ("quaternius__Donut", 100_000, 512, False),
     ]
     rows = []
-    for name, n, res, est_normals in cases:
+    for (name, n, res, est_normals), method in [(c, m) for c in cases for m in methods]:
         v0, f0 = corpus.load(entries[name])
         pts, nrm = corpus.sample_input(v0, f0, n, 0.002, corpus.stable_seed("estimate", name, n))
-        pred = estimate(n, resolution=res, estimate_normals=est_normals)
+        pred = estimate(n, resolution=res, estimate_normals=est_normals, method=method)
 
-        def fn(pts=pts, nrm=nrm, res=res, est_normals=est_normals):
-            return reconstruct(pts, None if est_normals else nrm, method="splines", resolution=res, device="cpu")
+        def fn(pts=pts, nrm=nrm, res=res, est_normals=est_normals, method=method):
+            return reconstruct(pts, None if est_normals else nrm, method=method, resolution=res, device="cpu")
 
         m, dt, mem, err = _measure(fn)
         stages = "" if m is None else ", ".join(f"{k} {v:.1f}" for k, v in m.stats["timings"].items())
         grid = 0 if m is None else m.stats["grid_points_evaluated"]
-        rows.append((name, n, res, est_normals, pred, dt, mem, grid, stages, err))
-        log(f"  {name} n={n:,} R={res} normals={'est' if est_normals else 'given'}: predicted "
+        rows.append((name, n, res, est_normals, method, pred, dt, mem, grid, stages, err))
+        log(f"  {name} n={n:,} {method} R={res} normals={'est' if est_normals else 'given'}: predicted "
             f"{pred.seconds:.1f}s {pred.peak_bytes / 2**20:.0f} MiB, measured {dt:.1f}s {mem / 2**20:.0f} MiB "
             f"grid {grid:,} [{stages}]" + (f" FAILED {err}" if err else ""))
     lines = [
-        "| input | points | resolution | normals | solver | predicted time (s) | measured time (s) "
+        "| input | points | resolution | normals | method | solver | predicted time (s) | measured time (s) "
         "| predicted memory (MiB) | measured peak (MiB) |",
-        "|---|---:|---:|---|---|---:|---:|---:|---:|",
+        "|---|---:|---:|---|---|---|---:|---:|---:|---:|",
     ]
-    for name, n, res, est_normals, pred, dt, mem, _, _, _ in rows:
+    for name, n, res, est_normals, method, pred, dt, mem, _, _, _ in rows:
         lines.append(
-            f"| {name} | {n:,} | {res} | {'estimated' if est_normals else 'given'} | {pred.solver} "
+            f"| {name} | {n:,} | {res} | {'estimated' if est_normals else 'given'} | {method} | {pred.solver} "
             f"| {pred.seconds:.1f} | {dt:.1f} | {pred.peak_bytes / 2**20:.0f} | {mem / 2**20:.0f} |"
         )
     return "\n".join(lines)
@@ -271,15 +272,16 @@ def main(argv=None) -> int:
     log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
     warm_up()
     parts = [f"Machine: {machine()}", ""]
+    methods = list(args.methods)
+    note = ""
+    if "nkf" in methods:
+        ok, why = nkf_available()
+        if not ok:
+            methods.remove("nkf")
+            note = f"`nkf` skipped: method='nkf' is not available in this installation ({why})."
+            log(note)
+    kernels = [m for m in methods if m in ("splines", "nkf")]
     if not args.skip_scenes:
-        methods = list(args.methods)
-        note = ""
-        if "nkf" in methods:
-            ok, why = nkf_available()
-            if not ok:
-                methods.remove("nkf")
-                note = f"`nkf` skipped: method='nkf' is not available in this installation ({why})."
-                log(note)
         rows = run_scenes(args.scenes, args.points, args.resolution, args.noise, methods, log)
         parts += ["Scenes:", "", format_scenes(rows, args.points, args.resolution, args.noise, note), ""]
     if args.large:
@@ -288,10 +290,10 @@ def main(argv=None) -> int:
             entries = [e for e in entries if e.name in set(args.large_meshes)]
         else:
             entries = [e for e in entries if e.name in ("quaternius__Donut", "kenney__chairRounded", "abc__abc6")]
-        rows = run_large(entries, args.large_sizes, args.resolution, args.cache, log)
+        rows = run_large(entries, args.large_sizes, args.resolution, args.cache, kernels, log)
         parts += ["Large inputs:", "", format_large(rows, args.resolution), ""]
     if args.estimates:
-        parts += ["Estimates (nkf_model.estimate) against measurements:", "", run_estimates(log), ""]
+        parts += ["Estimates (nkf_model.estimate) against measurements:", "", run_estimates(kernels, log), ""]
     text = "\n".join(parts)
     return report(text, args.out)
 
