@@ -31,12 +31,16 @@ INPUT_PER_POINT = 1.5e-6  # seconds per input point: cleaning, normalising, redu
 MESH_PER_NODE = 0.6e-6  # seconds per evaluated grid point: band bookkeeping and marching cubes
 FALKON_ITERATIONS = 40
 FIXED_SECONDS = 0.15
-# The learned kernel (method="nkf"): 13 numbers per homogeneous point instead of 4 take the general
-# kernel loops. Measured at 100,000 points, resolution 256 (partition of unity): evaluation 20.0 s
-# against 4.5 s for splines, local fits 5.0 s against 4.8 s, the feature network 0.2 s.
+# The learned kernel (method="nkf"): 12 numbers per homogeneous point instead of 4. The partition of
+# unity's sum takes its general loop: at 100,000 points, resolution 256, evaluation 20.0 s against
+# 4.5 s for splines (local fits 5.0 s against 4.8 s, the feature network 0.2 s). The global fits
+# (dense, Falkon) have fused 12-D loops: at 1,000 points, resolution 128, 0.3 s against 0.2 s.
 NKF_EVAL_FACTOR = 4.4
-NKF_FIXED_SECONDS = 0.3
-BYTES_NKF = 300  # per solved point: features of the constraints (13 numbers instead of 4, float64)
+NKF_EVAL_FACTOR_GLOBAL = 1.5
+NKF_FIXED_SECONDS = 0.1
+# Per solved point, for the learned kernel: 12-D constraints and partition-of-unity patch centres
+# instead of 4-D (1,000,000 points, all kept, resolution 256: peak 3,121 MiB against 1,220 MiB).
+BYTES_NKF = 2000
 
 BYTES_INPUT = 420  # per input point during cleaning and reduction
 BYTES_SOLVED = 250  # per solved point: constraints, homogeneous vectors, normals
@@ -166,7 +170,9 @@ def plan(
         mem_stage.append(BYTES_NORMALS * n)
     m2 = 2 * n
     learned = method == "nkf"
-    slow = NKF_EVAL_FACTOR if learned else 1.0  # kernel evaluations at the grid points
+    slow = 1.0  # kernel evaluations at the grid points, against the data-free kernel's
+    if learned:
+        slow = NKF_EVAL_FACTOR if kind == "pou" else NKF_EVAL_FACTOR_GLOBAL
     if learned:
         seconds += NKF_FIXED_SECONDS
     if kind == "dense":
