@@ -173,7 +173,6 @@ def plan(
     slow = 1.0  # kernel evaluations at the grid points, against the data-free kernel's
     if learned:
         slow = NKF_EVAL_FACTOR if kind == "pou" else NKF_EVAL_FACTOR_GLOBAL
-    if learned:
         seconds += NKF_FIXED_SECONDS
     if kind == "dense":
         seconds += m2**3 / 3 / FLOPS + m2 * m2 / KERNEL_RATE + slow * nodes * m2 / KERNEL_RATE

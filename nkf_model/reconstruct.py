@@ -358,15 +358,15 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
                                        step=track.step)
             fn = KernelFunction(a[idx], alpha, eng, features=phi)
             n_centres = len(idx)
-        if kind != "pou" and far_field:
-            h = patch_spacing(x, seed=seed)
-            fn = BlendedField(fn, x, nrm, FAR_START * h, FAR_END * h, GRID_HALF, seed=seed, check=track.check)
         else:
             fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, check=track.check, step=track.step,
                                    features=phi, coarse_a=None if phi is None else homogeneous(xa),
                                    normals=nrm if far_field else None, patch_lam=patch_lam)
             info = SolveInfo("pou", len(a), pou_info.centres)
             n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
+        if kind != "pou" and far_field:
+            h = patch_spacing(x, seed=seed)
+            fn = BlendedField(fn, x, nrm, FAR_START * h, FAR_END * h, GRID_HALF, seed=seed, check=track.check)
         track.begin("evaluate")
         field_ = evaluate_sparse(
             lambda p: fn(p, check=track.check), resolution, check=track.check, step=track.step, seeds=x, close=close

@@ -32,6 +32,7 @@ def test_trim_removes_surface_far_from_samples(hemisphere):
     st = m.stats["trim"]
     assert st["trimmed_faces"] > 0 and st["threshold"] > 0
     assert m.stats["far_field"] is False  # an open scan has no inside: no winding-number far field
+    assert m.stats["solver"] == "dense" and m.stats["pou"] is None  # the size's own solver, nothing more
     d, _ = cKDTree(p).query(m.vertices)
     assert d.max() <= st["threshold"] + 1e-6
     assert m.vertices[:, 2].min() > -0.1  # nothing left below the open rim
