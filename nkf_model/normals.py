@@ -16,6 +16,12 @@ Two steps, both on the CPU with SciPy:
       votes agree (at least half of the weight, seen in about 3 views or more; one clear view
       for scanners) are seeds. Points seen from almost nowhere (inside a cup, between touching
       parts) are not.
+      Thin parts: where the two faces of a plate are closer than the views' depth tolerance, a
+      view sees both and its votes cancel. There a point whose nearby parallel points all lie on
+      one side of its plane (the plate's other face) is seeded with the normal pointing away from
+      them (:func:`layer_votes`); that holds for a solid plate and not for the facing sides of a
+      narrow gap, so it is used only on connected layer regions whose view-seeded points agree
+      with it (:func:`_layer_seeds`), and only in the global fit of step c, not as a seed of b.
    b. Propagation from the seeds along a minimum spanning tree of the neighbour graph (Hoppe et
       al., SIGGRAPH 1992; the seeds hang from a virtual root). Edge ``(i, j)`` with unit offset
       ``d`` costs ``1 - |n_i . n_j| + min(a, 2 - a)``, ``a = |n_i . d| + |n_j . d|``: cheap both
@@ -408,6 +414,64 @@ def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, 
     return s
 
 
+def layer_votes(points, normals, spacing, tree, noise: float = 0.0, check: Check = None) -> np.ndarray:
+    """Which side of each point its thin part's other face lies on: votes (N,) in {-1, 0, +1}.
+
+    Among the :data:`LAYER_K` nearest neighbours within :data:`LAYER_RADIUS` spacings, those with
+    nearly parallel normals (``|n_i . n_j| > LAYER_PARALLEL``) whose offset along ``n_i`` exceeds
+    :data:`LAYER_OFFSET` spacings (and :data:`SIG_NOISE` noise levels) form the other layer. When at
+    least :data:`LAYER_MIN` of them lie below the plane and none above, the vote is +1 (for a solid
+    plate, the outward normal points away from its other face); the mirror case gives -1; anything
+    else (no other layer, layers on both sides, noise) gives 0.
+    """
+    p = points
+    n = len(p)
+    k = int(min(LAYER_K + 1, n))
+    out = np.zeros(n)
+    reach = LAYER_RADIUS * spacing
+    min_h = max(LAYER_OFFSET * spacing, SIG_NOISE * noise)
+    for s in range(0, n, _CHUNK):
+        if check is not None:
+            check()
+        e = min(n, s + _CHUNK)
+        dist, idx = tree.query(p[s:e], k=k, workers=-1)
+        dist, idx = dist[:, 1:], idx[:, 1:]
+        nrm = normals[s:e]
+        h = np.einsum("cki,ci->ck", p[idx] - p[s:e, None, :], nrm)
+        par = np.abs(np.einsum("cki,ci->ck", normals[idx], nrm)) > LAYER_PARALLEL
+        near = (dist < reach) & par
+        below = (near & (h < -min_h)).sum(axis=1)
+        above = (near & (h > min_h)).sum(axis=1)
+        out[s:e] = np.where((below >= LAYER_MIN) & (above == 0), 1.0,
+                            np.where((above >= LAYER_MIN) & (below == 0), -1.0, 0.0))
+    return out
+
+
+def _layer_seeds(g, normals, votes, seed) -> np.ndarray:
+    """Seeds (N,) extended by the layer votes where the views left points undecided.
+
+    Layer points (``votes != 0``) joined by edges of the neighbour graph ``g`` with parallel normals
+    (not around a sharp edge, onto another face) form regions; a
+    region's votes are used when at least :data:`LAYER_CHECKS` of its points were also seeded by the
+    views and at least :data:`LAYER_AGREEMENT` of those agree with their votes. A narrow gap
+    between two parts (its facing sides point into it, against the votes) is hidden from the views
+    and gets no seeds, so it keeps the propagated signs."""
+    n = len(votes)
+    g = g.tocoo()
+    layer = votes != 0
+    par = np.abs(np.sum(normals[g.row] * normals[g.col], axis=1)) > LAYER_PARALLEL
+    inner = layer[g.row] & layer[g.col] & par
+    n_regions, labels = connected_components(
+        coo_matrix((np.ones(int(inner.sum())), (g.row[inner], g.col[inner])), shape=(n, n)), directed=False
+    )
+    both = layer & (seed != 0)
+    checked = np.bincount(labels[both], minlength=n_regions)
+    agreed = np.bincount(labels[both], weights=(seed[both] == votes[both]).astype(float), minlength=n_regions)
+    trusted = (checked >= LAYER_CHECKS) & (agreed >= LAYER_AGREEMENT * checked)
+    use = layer & (seed == 0) & trusted[labels]
+    return np.where(use, votes, seed)
+
+
 def _seeded_propagation(g, points, normals, seed_sign, noise=None):
     """Orient every point from the seeds: ``seed_sign`` (N,) is +1/-1 for seeds, 0 elsewhere.
 
@@ -494,6 +558,14 @@ SIG_NOISE = 1.5  # offsets along the normals below this many noise levels are no
 NOISE_QUANTILE = 0.25  # the noise level is this quantile of the points' plane-fit residuals
 SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
 VIEWPOINT_VOTE_WEIGHT = 0.25
+# Thin parts (layer_votes, _layer_seeds); measured on the val meshes with thin parts (docs/scans.md).
+LAYER_K = 24  # neighbours searched for the other face
+LAYER_RADIUS = 3.0  # ... within this many spacings
+LAYER_PARALLEL = 0.9  # |cos| between the normals of the two faces
+LAYER_OFFSET = 0.3  # offset along the normal, in spacings, that counts as the other face
+LAYER_MIN = 2  # points of the other face needed
+LAYER_CHECKS = 3  # view-seeded points a layer region needs ...
+LAYER_AGREEMENT = 0.8  # ... and the share of them that must agree with its votes
 
 
 def median_spacing(points: np.ndarray, tree: Optional[cKDTree] = None, sample: int = 20000) -> float:
@@ -571,12 +643,18 @@ def orient_normals(
     if check is not None:
         check()
     g = _graph(p, nrm, tree, k, check, noise)
+    n_seeded = int((seed != 0).sum())
     sign, pieces = _seeded_propagation(g, p, nrm, seed, noise)
     sign = _flip_pieces(g, p, nrm, sign, seed, check, noise=noise)
+    if orientation != "viewpoint":
+        # Thin parts with both faces sampled belong to objects (a scanner sees one side of each
+        # surface). Their layer votes join the global fit only: as hard seeds of the spanning tree,
+        # a few wrong ones (the facing sides of a narrow gap) would decide everything behind them.
+        seed = _layer_seeds(g, nrm, layer_votes(p, nrm, spacing, tree, noise_level, check), seed)
     sign = _harmonic_signs(g, p, nrm, sign, seed, noise, check)
     sign = _consensus(g, p, nrm, sign, votes, check, noise=noise)
     info = OrientationInfo(orientation=orientation, pieces=pieces,
-                           seeded=int((seed != 0).sum()), spacing=spacing)
+                           seeded=n_seeded, spacing=spacing)
     return nrm * sign[:, None], info
 
 
