@@ -381,6 +381,12 @@ def _consensus(g, points, normals, sign, votes, check: Check, rounds: int = CONS
     return s
 
 
+def _components(n, rows, cols):
+    """Connected components ``(count, labels (n,))`` of the graph on ``n`` points with edges
+    ``(rows[e], cols[e])``."""
+    return connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+
+
 def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, noise=None):
     """Flip whole undecided pieces that disagree with their surroundings.
 
@@ -393,9 +399,7 @@ def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, 
     free = seed == 0
     inner = free[i] & free[j] & (cost < 0.5)
     n = len(sign)
-    n_pieces, labels = connected_components(
-        coo_matrix((np.ones(int(inner.sum())), (i[inner], j[inner])), shape=(n, n)), directed=False
-    )
+    n_pieces, labels = _components(n, i[inner], j[inner])
     rel = edge_relation(points, normals, i, j, noise)
     boundary = free[i] & (labels[i] != labels[j])
     bi, bj, br = i[boundary], j[boundary], rel[boundary]
@@ -451,20 +455,19 @@ def _layer_seeds(g, normals, votes, seed) -> np.ndarray:
     """Seeds (N,) extended by the layer votes where the views left points undecided.
 
     Layer points (``votes != 0``) joined by edges of the neighbour graph ``g`` with parallel normals
-    (not around a sharp edge, onto another face) form regions; a
-    region's votes are used when at least :data:`LAYER_CHECKS` of its points were also seeded by the
-    views and at least :data:`LAYER_AGREEMENT` of those agree with their votes. A narrow gap
+    (not around a sharp edge, onto another face) form regions; a region's votes are used when at
+    least :data:`LAYER_CHECKS` of its points were also seeded by the views and at least
+    :data:`LAYER_AGREEMENT` of those agree with their votes. A narrow gap
     between two parts (its facing sides point into it, against the votes) is hidden from the views
     and gets no seeds, so it keeps the propagated signs."""
-    n = len(votes)
-    g = g.tocoo()
     layer = votes != 0
+    both = layer & (seed != 0)
+    if both.sum() < LAYER_CHECKS:  # no region can be trusted (smooth closed shapes, most inputs)
+        return seed
+    g = g.tocoo()
     par = np.abs(np.sum(normals[g.row] * normals[g.col], axis=1)) > LAYER_PARALLEL
     inner = layer[g.row] & layer[g.col] & par
-    n_regions, labels = connected_components(
-        coo_matrix((np.ones(int(inner.sum())), (g.row[inner], g.col[inner])), shape=(n, n)), directed=False
-    )
-    both = layer & (seed != 0)
+    n_regions, labels = _components(len(votes), g.row[inner], g.col[inner])
     checked = np.bincount(labels[both], minlength=n_regions)
     agreed = np.bincount(labels[both], weights=(seed[both] == votes[both]).astype(float), minlength=n_regions)
     trusted = (checked >= LAYER_CHECKS) & (agreed >= LAYER_AGREEMENT * checked)
