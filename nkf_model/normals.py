@@ -16,6 +16,10 @@ Two steps, both on the CPU with SciPy:
       votes agree (at least half of the weight, seen in about 3 views or more; one clear view
       for scanners) are seeds. Points seen from almost nowhere (inside a cup, between touching
       parts) are not.
+      Thin walls: where the two faces of a wall are closer than the views' depth tolerance, the
+      views see both; a point whose neighbours include another layer on the viewer's side
+      (:func:`layer_sides`) is hidden from that view, so the inner face of a thin-walled cup is
+      not seeded with its outer face's sign.
       Thin parts: where the two faces of a plate are closer than the views' depth tolerance, a
       view sees both and its votes cancel. There a point whose nearby parallel points all lie on
       one side of its plane (the plate's other face) is seeded with the normal pointing away from
@@ -281,7 +285,7 @@ def _basis(d):
 
 
 def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=None, noise: float = 0.0,
-                     check: Check = None):
+                     layers=None, check: Check = None):
     """Signed votes (N,) for each normal from the views in which its point is visible.
 
     A view is an orthographic projection along one of ``directions`` (unit vectors pointing from
@@ -345,6 +349,9 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
             vis = ok.zbuffer_visible(u, v, w, slope_u, slope_v, np.full(len(p), radius),
                                      np.ones(len(p), dtype=np.bool_), pixel, -half, half, tol)
         use = vis & (np.abs(cosang) > 0.2)
+        if layers is not None:
+            # Another layer between the point and the viewer hides it, however close.
+            use &= ~np.where(cosang < 0, layers[0], layers[1])
         votes[use] -= cosang[use]  # the normal faces the viewer when it points against the ray
         weight[use] += np.abs(cosang[use])
     return votes, weight
@@ -418,20 +425,23 @@ def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, 
     return s
 
 
-def layer_votes(points, normals, spacing, tree, noise: float = 0.0, check: Check = None) -> np.ndarray:
-    """Which side of each point its thin part's other face lies on: votes (N,) in {-1, 0, +1}.
+def layer_sides(points, normals, spacing, tree, noise: float = 0.0, check: Check = None):
+    """Points of another layer above and below each point's plane: counts (N,), (N,) (int64).
 
     Among the :data:`LAYER_K` nearest neighbours within :data:`LAYER_RADIUS` spacings, those with
-    nearly parallel normals (``|n_i . n_j| > LAYER_PARALLEL``) whose offset along ``n_i`` exceeds
-    :data:`LAYER_OFFSET` spacings (and :data:`SIG_NOISE` noise levels) form the other layer. When at
-    least :data:`LAYER_MIN` of them lie below the plane and none above, the vote is +1 (for a solid
-    plate, the outward normal points away from its other face); the mirror case gives -1; anything
-    else (no other layer, layers on both sides, noise) gives 0.
+    nearly parallel normals (``|n_i . n_j| > LAYER_PARALLEL``) whose offset ``h`` along ``n_i``
+    exceeds :data:`LAYER_OFFSET` spacings (and :data:`SIG_NOISE` noise levels) beyond what the
+    surface's bending explains belong to another layer: the other face of a thin part, or the far
+    side of a narrow gap. A neighbour on the same curved sheet, at lateral distance ``t`` with
+    normals ``theta`` apart, lies ``t * tan(theta / 2)`` off the plane (exact on a circle), so
+    only ``|h| - t * tan(theta / 2)`` counts: the inside of a bowl is no layer.
+    ``above`` counts the layer points on the side ``n_i`` points to, ``below`` the others.
     """
     p = points
     n = len(p)
     k = int(min(LAYER_K + 1, n))
-    out = np.zeros(n)
+    above = np.zeros(n, dtype=np.int64)
+    below = np.zeros(n, dtype=np.int64)
     reach = LAYER_RADIUS * spacing
     min_h = max(LAYER_OFFSET * spacing, SIG_NOISE * noise)
     for s in range(0, n, _CHUNK):
@@ -442,13 +452,27 @@ def layer_votes(points, normals, spacing, tree, noise: float = 0.0, check: Check
         dist, idx = dist[:, 1:], idx[:, 1:]
         nrm = normals[s:e]
         h = np.einsum("cki,ci->ck", p[idx] - p[s:e, None, :], nrm)
-        par = np.abs(np.einsum("cki,ci->ck", normals[idx], nrm)) > LAYER_PARALLEL
-        near = (dist < reach) & par
-        below = (near & (h < -min_h)).sum(axis=1)
-        above = (near & (h > min_h)).sum(axis=1)
-        out[s:e] = np.where((below >= LAYER_MIN) & (above == 0), 1.0,
-                            np.where((above >= LAYER_MIN) & (below == 0), -1.0, 0.0))
-    return out
+        cos = np.minimum(np.abs(np.einsum("cki,ci->ck", normals[idx], nrm)), 1.0)
+        lateral = np.sqrt(np.maximum(dist * dist - h * h, 0.0))
+        bend = lateral * np.sqrt((1.0 - cos) / (1.0 + cos))  # t * tan(theta / 2)
+        near = (dist < reach) & (cos > LAYER_PARALLEL)
+        off = np.abs(h) - bend > min_h
+        above[s:e] = (near & off & (h > 0)).sum(axis=1)
+        below[s:e] = (near & off & (h < 0)).sum(axis=1)
+    return above, below
+
+
+def layer_votes(points, normals, spacing, tree, noise: float = 0.0, check: Check = None, sides=None) -> np.ndarray:
+    """Which side of each point its thin part's other face lies on: votes (N,) in {-1, 0, +1}.
+
+    From :func:`layer_sides` (or ``sides``, its result): when at least :data:`LAYER_MIN` layer
+    points lie below the plane and none above, the vote is +1 (for a solid plate, the outward
+    normal points away from its other face); the mirror case gives -1; anything else (no other
+    layer, layers on both sides) gives 0.
+    """
+    above, below = sides if sides is not None else layer_sides(points, normals, spacing, tree, noise, check)
+    return np.where((below >= LAYER_MIN) & (above == 0), 1.0,
+                    np.where((above >= LAYER_MIN) & (below == 0), -1.0, 0.0))
 
 
 def _layer_seeds(g, normals, votes, seed) -> np.ndarray:
@@ -630,12 +654,17 @@ def orient_normals(
         sub = np.sort(np.random.default_rng(0).choice(n, VIEW_POINTS, replace=False))
         view_spacing = spacing * float(np.sqrt(n / VIEW_POINTS))
     noise_level = 0.0 if noise is None else float(np.median(noise))
+    # Layers closer than the views' depth tolerance (the two faces of a thin wall) are told apart
+    # by their neighbours: a point with another layer on its viewer's side is hidden.
+    sides = layer_sides(p, nrm, spacing, tree, noise_level, check)
+    layers = (sides[0][sub] > 0, sides[1][sub] > 0)
     if orientation == "viewpoint":
-        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, viewpoints=vp, noise=noise_level, check=check)
+        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, viewpoints=vp, noise=noise_level,
+                                  layers=layers, check=check)
     else:
         dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
         sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, directions=-dirs, noise=noise_level,
-                                  check=check)
+                                  layers=layers, check=check)
     votes = np.zeros(n)
     weight = np.zeros(n)
     votes[sub], weight[sub] = sv, sw
@@ -653,7 +682,7 @@ def orient_normals(
         # Thin parts with both faces sampled belong to objects (a scanner sees one side of each
         # surface). Their layer votes join the global fit only: as hard seeds of the spanning tree,
         # a few wrong ones (the facing sides of a narrow gap) would decide everything behind them.
-        seed = _layer_seeds(g, nrm, layer_votes(p, nrm, spacing, tree, noise_level, check), seed)
+        seed = _layer_seeds(g, nrm, layer_votes(p, nrm, spacing, tree, sides=sides), seed)
     sign = _harmonic_signs(g, p, nrm, sign, seed, noise, check)
     sign = _consensus(g, p, nrm, sign, votes, check, noise=noise)
     info = OrientationInfo(orientation=orientation, pieces=pieces,

@@ -28,3 +28,21 @@ def hemisphere_points(n: int, seed: int = 0):
     d[:, 2] = np.abs(d[:, 2])
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return d.copy(), d
+
+
+def open_box_points(n: int, wall: float, seed: int = 0):
+    """``n`` points on a unit box without a lid whose five walls are slabs ``wall`` thick (a cup
+    with thin walls: each wall's inner face looks into the box), outward unit normals. Faces that
+    lie inside another wall (where walls meet) are sampled too, as in a mesh made of five boxes."""
+    t = wall
+    parts = [((1.0, 1.0, t), (0.0, 0.0, -0.5 + t / 2)),
+             ((t, 1.0, 1.0), (-0.5 + t / 2, 0.0, 0.0)), ((t, 1.0, 1.0), (0.5 - t / 2, 0.0, 0.0)),
+             ((1.0 - 2 * t, t, 1.0), (0.0, -0.5 + t / 2, 0.0)), ((1.0 - 2 * t, t, 1.0), (0.0, 0.5 - t / 2, 0.0))]
+    areas = np.array([2 * (sx * sy + sy * sz + sx * sz) for (sx, sy, sz), _ in parts])
+    counts = np.round(n * areas / areas.sum()).astype(int)
+    ps, ns = [], []
+    for k, ((size, centre), m) in enumerate(zip(parts, counts)):
+        p, q = box_points(int(m), size=size, center=centre, seed=seed + k)
+        ps.append(p)
+        ns.append(q)
+    return np.concatenate(ps), np.concatenate(ns)
