@@ -180,8 +180,9 @@ def run_large(entries, sizes, resolution, cache, methods=("splines",), log=print
                 s.update(mesh=e.name, n=n, variant=label, method=method, time=dt, mem=mem, err=err, reduction=red,
                          solver=solver)
                 rows.append(s)
-                log(f"  {e.name:36s} n={n:>9,} {method:8s} {label:10s} {red:24s} IoU {s['iou']:.4f} CD {s['chamfer_l1']:.5f} "
-                    f"t {dt:6.1f}s mem {mem / 2**20:6.0f} MiB" + (f" FAILED {err}" if err else ""))
+                log(f"  {e.name:36s} n={n:>9,} {method:8s} {label:10s} {red:24s} IoU {s['iou']:.4f} "
+                    f"CD {s['chamfer_l1']:.5f} t {dt:6.1f}s mem {mem / 2**20:6.0f} MiB"
+                    + (f" FAILED {err}" if err else ""))
     return rows
 
 

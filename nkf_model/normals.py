@@ -39,6 +39,10 @@ Two steps, both on the CPU with SciPy:
       propagation: one wrong edge no longer flips a whole branch of the tree); then single points
       flip where their neighbours and views clearly disagree with them (iterated conditional
       modes).
+   d. Closed objects (``"outward"``): the winding number of the oriented cloud (:func:`_winding_signs`).
+      Its gradient at a point, from the rest of the surface, points inward; points the views did
+      not seed take the sign that agrees with it, a few rounds over. That reaches faces hidden
+      inside other parts and behind lids, which the graph decides poorly.
 
 Noise: the noise level of the cloud (the flattest quarter's plane-fit residual) widens the depth
 tolerance of the views and keeps offsets along the normals that are within the noise from being
@@ -570,6 +574,53 @@ def _harmonic_signs(g, points, normals, sign, seed, noise=None, check: Check = N
     return np.where(s >= 0, 1.0, -1.0)
 
 
+def _winding_signs(points, normals, sign, fixed, layer, spacing, check: Check = None):
+    """Signs (N,) refined by the winding number of the oriented cloud (closed objects only).
+
+    For a consistently oriented closed surface the winding number's gradient at each point, from
+    the rest of the surface (:class:`~nkf_model.winding.WindingGradient`, leaving out the
+    :data:`WINDING_EXCLUDE` spacings around it), points inward; Lin et al. (SIGGRAPH Asia 2024,
+    "winding number normal consistency") orient by iterating that. Here each point not in
+    ``fixed`` (N,) bool (the views' seeds) takes the sign that makes ``-g`` agree with its normal,
+    for :data:`WINDING_ROUNDS` rounds or until nothing flips. The field reaches into hidden places
+    the views and the neighbour graph decide poorly (a box behind a lid, the inside of a tank's
+    tracks), but not across thin parts: both faces of a plate lie within the left-out radius, so
+    their field comes from the rest of the shape. There (``layer`` (N,) bool) a point follows it
+    only where the field is strong: ``|g . n| * spacing`` at least :data:`WINDING_LAYER_FIELD`.
+    Above :data:`WINDING_POINTS` points, a random subset is refined and then the field of the
+    subset decides the rest once.
+    """
+    from .winding import AREA_NEIGHBOURS, WindingGradient
+
+    n = len(points)
+    if n <= AREA_NEIGHBOURS:
+        return sign
+    sub = np.arange(n)
+    sub_spacing = spacing
+    if n > WINDING_POINTS:
+        sub = np.sort(np.random.default_rng(1).choice(n, WINDING_POINTS, replace=False))
+        sub_spacing = spacing * float(np.sqrt(n / WINDING_POINTS))
+    need = np.where(layer, WINDING_LAYER_FIELD, 0.0)
+
+    def follow(s, g, idx):
+        f = -np.sum(g * normals[idx], axis=1) * spacing
+        free = ~fixed[idx] & (np.abs(f) >= need[idx]) & (f != 0)
+        return np.where(free, np.where(f > 0, 1.0, -1.0), s[idx])
+
+    field = WindingGradient(points[sub], normals[sub], WINDING_EXCLUDE * sub_spacing, check=check)
+    s = sign.copy()
+    for _ in range(WINDING_ROUNDS):
+        new = follow(s, field(s[sub], check=check), sub)
+        changed = bool((new != s[sub]).any())
+        s[sub] = new
+        if not changed:
+            break
+    if len(sub) < n:
+        rest = np.setdiff1d(np.arange(n), sub)
+        s[rest] = follow(s, field(s[sub], points[rest], check=check), rest)
+    return s
+
+
 N_VIEWS = 64  # orthographic views for "outward" (all around) and "up" (upper half)
 VIEW_POINTS = 40_000  # points drawn into the views at most
 # A point's sign is taken from the views when the votes agree this much (|sum| / sum of |votes|);
@@ -586,6 +637,11 @@ NOISE_QUANTILE = 0.25  # the noise level is this quantile of the points' plane-f
 SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
 VIEWPOINT_VOTE_WEIGHT = 0.25
 # Thin parts (layer_votes, _layer_seeds); measured on the val meshes with thin parts (docs/scans.md).
+# Winding-number refinement (_winding_signs), chosen on the val meshes (docs/scans.md).
+WINDING_ROUNDS = 10
+WINDING_EXCLUDE = 3.0  # radius left out around each point, in spacings
+WINDING_LAYER_FIELD = 0.08  # field a layer point needs to follow it (|g . n| * spacing)
+WINDING_POINTS = 20_000  # points refined at most (a random subset above)
 LAYER_K = 24  # neighbours searched for the other face
 LAYER_RADIUS = 3.0  # ... within this many spacings
 LAYER_PARALLEL = 0.9  # |cos| between the normals of the two faces
@@ -676,6 +732,7 @@ def orient_normals(
         check()
     g = _graph(p, nrm, tree, k, check, noise)
     n_seeded = int((seed != 0).sum())
+    view_seed = seed
     sign, pieces = _seeded_propagation(g, p, nrm, seed, noise)
     sign = _flip_pieces(g, p, nrm, sign, seed, check, noise=noise)
     if orientation != "viewpoint":
@@ -685,6 +742,10 @@ def orient_normals(
         seed = _layer_seeds(g, nrm, layer_votes(p, nrm, spacing, tree, sides=sides), seed)
     sign = _harmonic_signs(g, p, nrm, sign, seed, noise, check)
     sign = _consensus(g, p, nrm, sign, votes, check, noise=noise)
+    if orientation == "outward":
+        # Closed objects: the winding number's field says which side is in where the views saw
+        # nothing (open scans and terrain have no inside).
+        sign = _winding_signs(p, nrm, sign, view_seed != 0, (sides[0] > 0) | (sides[1] > 0), spacing, check)
     info = OrientationInfo(orientation=orientation, pieces=pieces,
                            seeded=n_seeded, spacing=spacing)
     return nrm * sign[:, None], info

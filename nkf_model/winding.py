@@ -17,6 +17,7 @@ Barnes-Hut expansion).
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import numba as nb
 import numpy as np
@@ -89,6 +90,50 @@ def _clustered_sum(q, cx, cm, cr2, first, x, m):  # pragma: no cover - compiled
     return out
 
 
+class _Clusters:
+    """Points split among ``clusters`` farthest-point-sampled centres (each point to its nearest),
+    sorted by cluster: ``points``, ``area`` (:func:`point_areas`) and ``order`` (input index of each
+    sorted point), ``first`` (C + 1,) (cluster ``c`` holds rows ``first[c]:first[c+1]``), ``owner``
+    (N,), the area-weighted ``centre`` (C, 3) and ``radius`` (C,) of each cluster."""
+
+    def __init__(self, points, clusters: int, seed: int = 0, check=None):
+        points = np.asarray(points, dtype=np.float64)
+        if len(points) <= AREA_NEIGHBOURS:
+            raise ValueError(f"at least {AREA_NEIGHBOURS + 1} points are needed, got {len(points)}")
+        area = point_areas(points)
+        k = min(clusters, len(points))
+        if check is not None:
+            check()
+        centres = points[farthest_point_sample(points, k, seed=seed)]
+        if check is not None:
+            check()
+        _, owner = cKDTree(centres).query(points)
+        order = np.argsort(owner, kind="stable")
+        owner, points, area = owner[order], points[order], area[order]
+        count = np.bincount(owner, minlength=k)
+        kept = count > 0  # (a centre can lose its points only to an exact duplicate of itself)
+        self.first = np.r_[0, np.cumsum(count[kept])].astype(np.int64)
+        self.owner = (np.cumsum(kept) - 1)[owner]
+        self.order, self.area = order, area
+        self.points = np.ascontiguousarray(points)
+        weight = np.maximum(self._sum(area), 1e-300)
+        self.centre = np.ascontiguousarray(self.total(area[:, None] * points) / weight[:, None])
+        dist = np.linalg.norm(points - self.centre[self.owner], axis=1)
+        self.radius = np.zeros(len(self.centre))
+        np.maximum.at(self.radius, self.owner, dist)
+
+    def _sum(self, v):
+        return np.bincount(self.owner, weights=v, minlength=len(self.first) - 1)
+
+    def sort(self, v: np.ndarray) -> np.ndarray:
+        """Per-point values (N, ...) in input order, sorted like :attr:`points`."""
+        return v[self.order]
+
+    def total(self, v: np.ndarray) -> np.ndarray:
+        """Sums (C, 3) over each cluster of sorted per-point vectors ``v`` (N, 3)."""
+        return np.ascontiguousarray(np.stack([self._sum(v[:, c]) for c in range(3)], 1))
+
+
 class FarField:
     """Winding number of an oriented point cloud, summed by clusters (one level of Barnes-Hut).
 
@@ -114,38 +159,11 @@ class FarField:
 
     def __init__(self, points: np.ndarray, normals: np.ndarray, clusters: int = FAR_CLUSTERS, seed: int = 0,
                  check=None):
-        points = np.asarray(points, dtype=np.float64)
-        normals = np.asarray(normals, dtype=np.float64)
-        if len(points) <= AREA_NEIGHBOURS:
-            raise ValueError(f"at least {AREA_NEIGHBOURS + 1} points are needed, got {len(points)}")
-        area = point_areas(points)
-        moment = normals * area[:, None]
-        k = min(clusters, len(points))
-        if check is not None:
-            check()
-        centres = points[farthest_point_sample(points, k, seed=seed)]
-        if check is not None:
-            check()
-        _, owner = cKDTree(centres).query(points)
-        order = np.argsort(owner, kind="stable")
-        owner, points, moment, area = owner[order], points[order], moment[order], area[order]
-        count = np.bincount(owner, minlength=k)
-        kept = count > 0  # (a centre can lose its points only to an exact duplicate of itself)
-        first = np.r_[0, np.cumsum(count[kept])].astype(np.int64)
-        owner = (np.cumsum(kept) - 1)[owner]
-
-        def total(v):
-            return np.bincount(owner, weights=v, minlength=len(first) - 1)
-
-        weight = np.maximum(total(area), 1e-300)
-        cx = np.stack([total(area * points[:, c]) for c in range(3)], 1) / weight[:, None]
-        cm = np.stack([total(moment[:, c]) for c in range(3)], 1)
-        dist = np.linalg.norm(points - cx[owner], axis=1)
-        radius = np.zeros(len(cx))
-        np.maximum.at(radius, owner, dist)
-        self._args = tuple(np.ascontiguousarray(v) for v in (cx, cm, (FAR_BETA * radius) ** 2))
-        self._first = first
-        self._x, self._m = np.ascontiguousarray(points), np.ascontiguousarray(moment)
+        c = _Clusters(points, clusters, seed, check)
+        moment = c.sort(np.asarray(normals, dtype=np.float64)) * c.area[:, None]
+        self._args = (c.centre, c.total(moment), (FAR_BETA * c.radius) ** 2)
+        self._first = c.first
+        self._x, self._m = c.points, np.ascontiguousarray(moment)
 
     def __call__(self, queries: np.ndarray, check=None) -> np.ndarray:
         q = np.ascontiguousarray(queries, dtype=np.float64)
@@ -154,6 +172,91 @@ class FarField:
             if check is not None:
                 check()
             out[s : s + FAR_CHUNK] = _clustered_sum(q[s : s + FAR_CHUNK], *self._args, self._first, self._x, self._m)
+        return out
+
+
+@nb.njit(parallel=True, nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
+def _clustered_gradient(q, cx, cm, cr2, first, x, m, ex2):  # pragma: no cover - compiled
+    """Gradients (Q, 3) of the winding number at ``q``, leaving out the points within
+    ``sqrt(ex2)`` of each query; cluster ``c`` counts as one dipole beyond ``sqrt(cr2[c])``."""
+    out = np.empty((q.shape[0], 3))
+    for i in nb.prange(q.shape[0]):
+        gx = 0.0
+        gy = 0.0
+        gz = 0.0
+        for c in range(cx.shape[0]):
+            dx = cx[c, 0] - q[i, 0]
+            dy = cx[c, 1] - q[i, 1]
+            dz = cx[c, 2] - q[i, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 > cr2[c]:
+                r3 = r2 * math.sqrt(r2)
+                t = 3.0 * (cm[c, 0] * dx + cm[c, 1] * dy + cm[c, 2] * dz) / (r3 * r2)
+                gx += t * dx - cm[c, 0] / r3
+                gy += t * dy - cm[c, 1] / r3
+                gz += t * dz - cm[c, 2] / r3
+                continue
+            for j in range(first[c], first[c + 1]):
+                dx = x[j, 0] - q[i, 0]
+                dy = x[j, 1] - q[i, 1]
+                dz = x[j, 2] - q[i, 2]
+                r2 = dx * dx + dy * dy + dz * dz
+                if r2 > ex2:
+                    r3 = r2 * math.sqrt(r2)
+                    t = 3.0 * (m[j, 0] * dx + m[j, 1] * dy + m[j, 2] * dz) / (r3 * r2)
+                    gx += t * dx - m[j, 0] / r3
+                    gy += t * dy - m[j, 1] / r3
+                    gz += t * dz - m[j, 2] / r3
+        out[i, 0] = gx / (4.0 * math.pi)
+        out[i, 1] = gy / (4.0 * math.pi)
+        out[i, 2] = gz / (4.0 * math.pi)
+    return out
+
+
+class WindingGradient:
+    """Gradient of a point cloud's winding number, for normals whose signs are still being chosen.
+
+    For points ``x_j`` with unit normals ``n_j``, signs ``s_j`` and areas ``a_j`` (:func:`point_areas`),
+    at a query ``q``, leaving out the points within ``exclude`` of it::
+
+        g(q) = sum_j a_j s_j (3 (n_j . r) r / |r|^5 - n_j / |r|^3) / (4 pi),   r = x_j - q
+
+    At a point of a consistently oriented closed surface, ``-g`` points outward: the winding number
+    rises from 0 outside to 1 inside, and the rest of the surface (the point's own neighbourhood,
+    whose field is singular there, is left out) says which side is which. Clusters (as in
+    :class:`FarField`) count as one dipole beyond :data:`FAR_BETA` radii and beyond ``exclude``
+    plus their radius.
+
+    Parameters
+    ----------
+    points, normals : (N, 3) float64
+        At least ``AREA_NEIGHBOURS + 1`` points; unit normals of any sign.
+    exclude : float
+        Radius left out around each query, in the units of ``points``.
+
+    Call it with signs (N,) in {-1, +1} (and optionally queries (Q, 3), default the points
+    themselves, and ``check``, called between chunks); it returns (Q, 3) float64.
+    """
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray, exclude: float, clusters: int = FAR_CLUSTERS,
+                 seed: int = 0, check=None):
+        self._c = c = _Clusters(points, clusters, seed, check)
+        self._n = c.sort(np.asarray(normals, dtype=np.float64)) * c.area[:, None]
+        self._far2 = np.maximum(FAR_BETA * c.radius, float(exclude) + c.radius) ** 2
+        self._ex2 = float(exclude) ** 2
+        self._queries = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
+
+    def __call__(self, signs: np.ndarray, queries: Optional[np.ndarray] = None, check=None) -> np.ndarray:
+        c = self._c
+        m = np.ascontiguousarray(self._n * c.sort(np.asarray(signs, dtype=np.float64))[:, None])
+        q = self._queries if queries is None else np.ascontiguousarray(queries, dtype=np.float64)
+        cm = c.total(m)
+        out = np.empty((len(q), 3))
+        for s in range(0, len(q), FAR_CHUNK):
+            if check is not None:
+                check()
+            out[s : s + FAR_CHUNK] = _clustered_gradient(q[s : s + FAR_CHUNK], c.centre, cm, self._far2, c.first,
+                                                         c.points, m, self._ex2)
         return out
 
 

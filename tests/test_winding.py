@@ -13,7 +13,7 @@ from nkf_model.engines import cpu_engine
 from nkf_model.kernel import homogeneous
 from nkf_model.normalise import Normalisation
 from nkf_model.pou import fit_pou
-from nkf_model.winding import far_field, point_areas, winding_number, winding_scale
+from nkf_model.winding import WindingGradient, far_field, point_areas, winding_number, winding_scale
 
 
 def test_sphere_inside_one_outside_zero():
@@ -29,6 +29,34 @@ def test_sphere_inside_one_outside_zero():
     np.testing.assert_allclose(winding_number(outside, p, n, area), 0.0, atol=0.1)
     # Flipping every normal flips the sign.
     np.testing.assert_allclose(winding_number(inside, p, -n, area), -1.0, atol=0.1)
+
+
+def _direct_gradient(q, p, m, exclude):
+    r = p[None, :, :] - q[:, None, :]
+    d = np.linalg.norm(r, axis=2)
+    use = d > exclude
+    d = np.where(use, d, 1.0)
+    md = np.einsum("qpi,pi->qp", r, m)
+    g = 3 * md[..., None] * r / d[..., None] ** 5 - m[None] / d[..., None] ** 3
+    return np.where(use[..., None], g, 0.0).sum(axis=1) / (4 * np.pi)
+
+
+def test_winding_gradient_is_the_direct_sum_and_points_inward():
+    p, n = sphere_points(600, radius=0.5, seed=4)
+    signs = np.where(np.random.default_rng(5).random(len(p)) < 0.8, 1.0, -1.0)
+    exclude = 0.1
+    exact = _direct_gradient(p, p, n * (point_areas(p) * signs)[:, None], exclude)
+    # Every point its own cluster: the sum is exact.
+    g = WindingGradient(p, n, exclude, clusters=len(p))(signs)
+    np.testing.assert_allclose(g, exact, rtol=1e-9, atol=1e-9 * np.abs(exact).max())
+    # Lumped by 60 clusters: close, and other queries work too.
+    q = p[:50] * 0.9
+    lumped = WindingGradient(p, n, exclude, clusters=60)(signs, q)
+    exact_q = _direct_gradient(q, p, n * (point_areas(p) * signs)[:, None], exclude)
+    assert np.median(np.linalg.norm(lumped - exact_q, axis=1) / np.linalg.norm(exact_q, axis=1)) < 0.05
+    # Consistently oriented, the gradient at each point (from the rest of the sphere) points in.
+    g = WindingGradient(p, n, exclude)(np.ones(len(p)))
+    assert (np.sum(g * n, axis=1) < 0).all()
 
 
 def test_far_field_matches_the_direct_sum_away_from_the_data():
