@@ -27,7 +27,7 @@ from .reconstruct import reconstruct
 GATE = 0.02
 
 
-def run(entries, n, noise, resolution, cache, log=print):
+def run(entries, n, noise, resolution, cache, log=print, method="splines"):
     rows = []
     for e in entries:
         ref = reference(e, cache)
@@ -40,7 +40,7 @@ def run(entries, n, noise, resolution, cache, log=print):
         row = {"mesh": e.name, "agree": agree, "t_est": t_est}
         for tag, normals in (("true", nrm), ("est", est)):
             try:
-                m = reconstruct(pts, normals, method="splines", resolution=resolution, device="cpu")
+                m = reconstruct(pts, normals, method=method, resolution=resolution, device="cpu")
                 s = score(m.vertices.astype(np.float64), m.faces, ref, corpus.stable_seed("score", e.name, n, noise))
             except Exception as exc:  # a failed reconstruction scores zero, and is counted
                 s = {"iou": 0.0, "chamfer_l1": float("nan"), "normal_consistency": 0.0, "fscore": 0.0, "err": str(exc)}
@@ -58,7 +58,7 @@ def _mean(rows, tag, key):
     return statistics.mean(vals) if vals else float("nan")
 
 
-def format_table(rows, n, noise, resolution) -> str:
+def format_table(rows, n, noise, resolution, method="splines") -> str:
     lines = [
         "| normals | mean IoU | Chamfer-L1 | normal consistency | F-score | sign agreement | time to estimate (s) |",
         "|---|---:|---:|---:|---:|---:|---:|",
@@ -74,7 +74,7 @@ def format_table(rows, n, noise, resolution) -> str:
     worst = sorted(rows, key=lambda r: r["est"]["iou"] - r["true"]["iou"])[:5]
     lines += [
         "",
-        f"{len(rows)} meshes, {n:,} points, noise {noise}, resolution {resolution}. "
+        f"{len(rows)} meshes, {n:,} points, noise {noise}, resolution {resolution}, method {method}. "
         f"Mean IoU loss from estimating the normals: **{loss:.4f}** "
         f"(gate: at most {GATE}: {'pass' if loss <= GATE else 'FAIL'}).",
         "",
@@ -90,6 +90,8 @@ def main(argv=None) -> int:
     ap.add_argument("--points", type=int, default=10000)
     ap.add_argument("--noise", type=float, default=0.0)
     ap.add_argument("--resolution", type=int, default=256)
+    ap.add_argument("--method", choices=("splines", "nkf"), default="splines",
+                    help="kernel of both reconstructions (nkf: the shipped weights)")
     ap.add_argument("--split", default="val")
     ap.add_argument("--limit", type=int, default=None, help="use only the first N meshes")
     ap.add_argument("--meshes", nargs="*", default=None, help="use only these meshes (names)")
@@ -105,8 +107,9 @@ def main(argv=None) -> int:
     if args.limit:
         entries = entries[: args.limit]
     warm_up()
-    rows = run(entries, args.points, args.noise, args.resolution, args.cache, log)
-    text = "\n".join([f"Machine: {machine()}", "", format_table(rows, args.points, args.noise, args.resolution)])
+    rows = run(entries, args.points, args.noise, args.resolution, args.cache, log, args.method)
+    text = "\n".join([f"Machine: {machine()}", "",
+                      format_table(rows, args.points, args.noise, args.resolution, args.method)])
     return report(text, args.out)
 
 
