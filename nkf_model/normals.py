@@ -7,7 +7,7 @@ Two steps, both on the CPU with SciPy:
    weights ``exp(-(r / sigma)^2)`` of each neighbour's distance ``r`` to the current plane, starting
    from the 7 nearest: on a plate thinner than the neighbourhood, plain PCA mixes both faces into a
    meaningless normal, the reweighted fit keeps to the point's own face. Its sign is arbitrary.
-2. :func:`orient_normals`: consistent signs, in three steps.
+2. :func:`orient_normals`: consistent signs, in four steps.
 
    a. Seeds from views. Every point is drawn as a disc in its tangent plane into depth buffers: 64
       orthographic views from all around (``"outward"``, closed objects), from the upper half
@@ -298,6 +298,9 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
     depth buffer; a point is visible when nothing lies more than ``spacing / 2`` in front of it.
     A visible point whose normal makes an angle under 78 degrees with the line of sight votes
     ``+|cos|`` if its normal faces the viewer and ``-|cos|`` if not; the votes are summed.
+    ``layers``: two (N,) bool arrays, whether another layer lies on the side each normal points to
+    and on the other side (:func:`layer_sides`); a point with one on its viewer's side is hidden
+    from that view, however close the layers are. Returns votes (N,) and their weights (N,).
     """
     from . import _orient_kernels as ok
 
@@ -429,8 +432,9 @@ def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, 
     return s
 
 
-def layer_sides(points, normals, spacing, tree, noise: float = 0.0, check: Check = None):
-    """Points of another layer above and below each point's plane: counts (N,), (N,) (int64).
+def layer_sides(points, normals, spacing, tree, noise: float = 0.0, check: Check = None, index=None):
+    """Points of another layer above and below each point's plane: counts (N,), (N,) (int64), or
+    (M,), (M,) for the points ``index`` (M,) only.
 
     Among the :data:`LAYER_K` nearest neighbours within :data:`LAYER_RADIUS` spacings, those with
     nearly parallel normals (``|n_i . n_j| > LAYER_PARALLEL``) whose offset ``h`` along ``n_i``
@@ -442,8 +446,9 @@ def layer_sides(points, normals, spacing, tree, noise: float = 0.0, check: Check
     ``above`` counts the layer points on the side ``n_i`` points to, ``below`` the others.
     """
     p = points
-    n = len(p)
-    k = int(min(LAYER_K + 1, n))
+    index = np.arange(len(p)) if index is None else np.asarray(index)
+    n = len(index)
+    k = int(min(LAYER_K + 1, len(p)))
     above = np.zeros(n, dtype=np.int64)
     below = np.zeros(n, dtype=np.int64)
     reach = LAYER_RADIUS * spacing
@@ -452,10 +457,11 @@ def layer_sides(points, normals, spacing, tree, noise: float = 0.0, check: Check
         if check is not None:
             check()
         e = min(n, s + _CHUNK)
-        dist, idx = tree.query(p[s:e], k=k, workers=-1)
+        q = index[s:e]
+        dist, idx = tree.query(p[q], k=k, workers=-1)
         dist, idx = dist[:, 1:], idx[:, 1:]
-        nrm = normals[s:e]
-        h = np.einsum("cki,ci->ck", p[idx] - p[s:e, None, :], nrm)
+        nrm = normals[q]
+        h = np.einsum("cki,ci->ck", p[idx] - p[q, None, :], nrm)
         cos = np.minimum(np.abs(np.einsum("cki,ci->ck", normals[idx], nrm)), 1.0)
         lateral = np.sqrt(np.maximum(dist * dist - h * h, 0.0))
         bend = lateral * np.sqrt((1.0 - cos) / (1.0 + cos))  # t * tan(theta / 2)
@@ -636,12 +642,12 @@ SIG_NOISE = 1.5  # offsets along the normals below this many noise levels are no
 NOISE_QUANTILE = 0.25  # the noise level is this quantile of the points' plane-fit residuals
 SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
 VIEWPOINT_VOTE_WEIGHT = 0.25
-# Thin parts (layer_votes, _layer_seeds); measured on the val meshes with thin parts (docs/scans.md).
 # Winding-number refinement (_winding_signs), chosen on the val meshes (docs/scans.md).
 WINDING_ROUNDS = 10
 WINDING_EXCLUDE = 3.0  # radius left out around each point, in spacings
 WINDING_LAYER_FIELD = 0.08  # field a layer point needs to follow it (|g . n| * spacing)
 WINDING_POINTS = 20_000  # points refined at most (a random subset above)
+# Thin parts (layer_votes, _layer_seeds); measured on the val meshes with thin parts (docs/scans.md).
 LAYER_K = 24  # neighbours searched for the other face
 LAYER_RADIUS = 3.0  # ... within this many spacings
 LAYER_PARALLEL = 0.9  # |cos| between the normals of the two faces
@@ -711,9 +717,14 @@ def orient_normals(
         view_spacing = spacing * float(np.sqrt(n / VIEW_POINTS))
     noise_level = 0.0 if noise is None else float(np.median(noise))
     # Layers closer than the views' depth tolerance (the two faces of a thin wall) are told apart
-    # by their neighbours: a point with another layer on its viewer's side is hidden.
-    sides = layer_sides(p, nrm, spacing, tree, noise_level, check)
-    layers = (sides[0][sub] > 0, sides[1][sub] > 0)
+    # by their neighbours: a point with another layer on its viewer's side is hidden. Objects
+    # need them for every point (layer votes, the winding-number step); scans for the views'.
+    if orientation == "viewpoint":
+        sides = None
+        layers = tuple(c > 0 for c in layer_sides(p, nrm, spacing, tree, noise_level, check, index=sub))
+    else:
+        sides = layer_sides(p, nrm, spacing, tree, noise_level, check)
+        layers = (sides[0][sub] > 0, sides[1][sub] > 0)
     if orientation == "viewpoint":
         sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, viewpoints=vp, noise=noise_level,
                                   layers=layers, check=check)
@@ -745,7 +756,8 @@ def orient_normals(
     if orientation == "outward":
         # Closed objects: the winding number's field says which side is in where the views saw
         # nothing (open scans and terrain have no inside).
-        sign = _winding_signs(p, nrm, sign, view_seed != 0, (sides[0] > 0) | (sides[1] > 0), spacing, check)
+        sign = _winding_signs(p, nrm, sign, view_seed != 0, (sides[0] > 0) | (sides[1] > 0), spacing,
+                              check)
     info = OrientationInfo(orientation=orientation, pieces=pieces,
                            seeded=n_seeded, spacing=spacing)
     return nrm * sign[:, None], info
