@@ -64,6 +64,15 @@ def winding_number(queries: np.ndarray, points: np.ndarray, normals: np.ndarray,
                           np.arange(len(x) + 1, dtype=np.int64), x, m)
 
 
+@nb.njit(inline="always", nogil=True, cache=True)
+def _offset(a, k, q, i):  # pragma: no cover - compiled
+    """``a[k] - q[i]`` as ``(dx, dy, dz, squared length)``."""
+    dx = a[k, 0] - q[i, 0]
+    dy = a[k, 1] - q[i, 1]
+    dz = a[k, 2] - q[i, 2]
+    return dx, dy, dz, dx * dx + dy * dy + dz * dz
+
+
 @nb.njit(parallel=True, nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
 def _clustered_sum(q, cx, cm, cr2, first, x, m):  # pragma: no cover - compiled
     """Winding numbers at ``q``: cluster ``c`` (dipole ``cm[c]`` at ``cx[c]``) counts as one dipole
@@ -72,18 +81,12 @@ def _clustered_sum(q, cx, cm, cr2, first, x, m):  # pragma: no cover - compiled
     for i in nb.prange(q.shape[0]):
         s = 0.0
         for c in range(cx.shape[0]):
-            dx = cx[c, 0] - q[i, 0]
-            dy = cx[c, 1] - q[i, 1]
-            dz = cx[c, 2] - q[i, 2]
-            r2 = dx * dx + dy * dy + dz * dz
+            dx, dy, dz, r2 = _offset(cx, c, q, i)
             if r2 > cr2[c]:
                 s += (cm[c, 0] * dx + cm[c, 1] * dy + cm[c, 2] * dz) / (r2 * math.sqrt(r2))
                 continue
             for j in range(first[c], first[c + 1]):
-                dx = x[j, 0] - q[i, 0]
-                dy = x[j, 1] - q[i, 1]
-                dz = x[j, 2] - q[i, 2]
-                r2 = dx * dx + dy * dy + dz * dz
+                dx, dy, dz, r2 = _offset(x, j, q, i)
                 if r2 > 0.0:
                     s += (m[j, 0] * dx + m[j, 1] * dy + m[j, 2] * dz) / (r2 * math.sqrt(r2))
         out[i] = s / (4.0 * math.pi)
@@ -175,6 +178,14 @@ class FarField:
         return out
 
 
+@nb.njit(inline="always", nogil=True, cache=True)
+def _dipole_gradient(m, k, dx, dy, dz, r2):  # pragma: no cover - compiled
+    """Gradient (times 4 pi) at the query of dipole ``m[k]`` at offset ``(dx, dy, dz)`` from it."""
+    r3 = r2 * math.sqrt(r2)
+    t = 3.0 * (m[k, 0] * dx + m[k, 1] * dy + m[k, 2] * dz) / (r3 * r2)
+    return t * dx - m[k, 0] / r3, t * dy - m[k, 1] / r3, t * dz - m[k, 2] / r3
+
+
 @nb.njit(parallel=True, nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
 def _clustered_gradient(q, cx, cm, cr2, first, x, m, ex2):  # pragma: no cover - compiled
     """Gradients (Q, 3) of the winding number at ``q``, leaving out the points within
@@ -185,28 +196,20 @@ def _clustered_gradient(q, cx, cm, cr2, first, x, m, ex2):  # pragma: no cover -
         gy = 0.0
         gz = 0.0
         for c in range(cx.shape[0]):
-            dx = cx[c, 0] - q[i, 0]
-            dy = cx[c, 1] - q[i, 1]
-            dz = cx[c, 2] - q[i, 2]
-            r2 = dx * dx + dy * dy + dz * dz
+            dx, dy, dz, r2 = _offset(cx, c, q, i)
             if r2 > cr2[c]:
-                r3 = r2 * math.sqrt(r2)
-                t = 3.0 * (cm[c, 0] * dx + cm[c, 1] * dy + cm[c, 2] * dz) / (r3 * r2)
-                gx += t * dx - cm[c, 0] / r3
-                gy += t * dy - cm[c, 1] / r3
-                gz += t * dz - cm[c, 2] / r3
+                ax, ay, az = _dipole_gradient(cm, c, dx, dy, dz, r2)
+                gx += ax
+                gy += ay
+                gz += az
                 continue
             for j in range(first[c], first[c + 1]):
-                dx = x[j, 0] - q[i, 0]
-                dy = x[j, 1] - q[i, 1]
-                dz = x[j, 2] - q[i, 2]
-                r2 = dx * dx + dy * dy + dz * dz
+                dx, dy, dz, r2 = _offset(x, j, q, i)
                 if r2 > ex2:
-                    r3 = r2 * math.sqrt(r2)
-                    t = 3.0 * (m[j, 0] * dx + m[j, 1] * dy + m[j, 2] * dz) / (r3 * r2)
-                    gx += t * dx - m[j, 0] / r3
-                    gy += t * dy - m[j, 1] / r3
-                    gz += t * dz - m[j, 2] / r3
+                    ax, ay, az = _dipole_gradient(m, j, dx, dy, dz, r2)
+                    gx += ax
+                    gy += ay
+                    gz += az
         out[i, 0] = gx / (4.0 * math.pi)
         out[i, 1] = gy / (4.0 * math.pi)
         out[i, 2] = gz / (4.0 * math.pi)
