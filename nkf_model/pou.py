@@ -30,6 +30,7 @@ from typing import Optional
 
 import numpy as np
 from scipy.linalg import lapack
+from scipy.spatial import cKDTree
 
 from . import _pou_kernels as pk
 from ._numba_kernels import ACUTE_MIN_LAST
@@ -45,6 +46,11 @@ MAX_PATCH_POINTS = 4 * POINTS_PER_PATCH  # larger patches are randomly thinned t
 MIN_PATCH_POINTS = 8  # patches with fewer points use the coarse global fit
 COARSE_POINTS = 1000  # points of the coarse global fit
 COARSE_GRID = 48  # cells per side of the grid the coarse fit is sampled on
+# Nodes of that grid nearer the data than this many of its cells keep the coarse fit's sign: there
+# the winding number is at its 1/2 crossing, and noisy dense input pushes it either way
+# (quaternius__Donut, 1,000,000 points, noise 0.002, every point kept: F-score 0.946 with the
+# override there, 1.000 without; docs/scans.md).
+FAR_NEAR_CELLS = 0.5
 
 Check = Optional[Callable[[], None]]
 Step = Optional[Callable[[float], None]]
@@ -115,7 +121,7 @@ class PoUFunction:
     """
 
     def __init__(self, lo, h, dims, start, count, cu, beta, coarse: KernelFunction, engine: Engine, features=None,
-                 far: FarField | None = None, check: Check = None):
+                 far: FarField | None = None, data: np.ndarray | None = None, check: Check = None):
         self.lo, self.h, self.dims = float(lo), float(h), int(dims)
         self.start, self.count = start, count
         self.cu = np.ascontiguousarray(cu)  # (D, C)
@@ -125,14 +131,19 @@ class PoUFunction:
         self.features = features
         # The coarse fit is smooth and only stands in far from the data: sample it once on a grid
         # and interpolate, instead of summing its centres at every query. ``far`` (winding numbers
-        # of the input, nkf_model.winding) overrides its sign where the two disagree.
+        # of the input ``data``, nkf_model.winding) overrides its sign where the two disagree,
+        # except at nodes within FAR_NEAR_CELLS cells of the data.
         g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
         nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
         f0 = coarse(nodes, check=check)
         if far is not None:
             w = far(nodes, check)
-            f0 = follow_winding(f0, w, winding_scale(w, f0))
+            followed = follow_winding(f0, w, winding_scale(w, f0))
+            if data is not None:
+                d, _ = cKDTree(data).query(nodes, distance_upper_bound=FAR_NEAR_CELLS * self.f0_step, workers=-1)
+                followed = np.where(np.isfinite(d), f0, followed)
+            f0 = followed
         self.f0_grid = np.ascontiguousarray(f0.reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
 
     def __call__(self, x: np.ndarray, check: Check = None) -> np.ndarray:
@@ -240,6 +251,7 @@ def fit_pou(
         wherever their signs disagree, at the coarse fit's scale: a global spline through
         :data:`COARSE_POINTS` points guesses the sign away from thin parts (both sheets cancel) and
         put spurious inside regions there (IoU 0.73 instead of 0.96 on a manta ray of 10,000 points).
+        Within :data:`FAR_NEAR_CELLS` cells of the coarse grid from the data the coarse fit is kept.
 
     Returns
     -------
@@ -327,7 +339,8 @@ def fit_pou(
         patch_lam=local_lam,
     )
     far = None if normals is None else FarField(x, normals, seed=seed, check=check)
-    return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far, check=check), info
+    return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far, data=x,
+                       check=check), info
 
 
 def _numba_threads() -> int:
