@@ -722,13 +722,11 @@ def orient_normals(
     if orientation == "viewpoint":
         sides = None
         layers = tuple(c > 0 for c in layer_sides(p, nrm, spacing, tree, noise_level, check, index=sub))
-    else:
-        sides = layer_sides(p, nrm, spacing, tree, noise_level, check)
-        layers = (sides[0][sub] > 0, sides[1][sub] > 0)
-    if orientation == "viewpoint":
         sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, viewpoints=vp, noise=noise_level,
                                   layers=layers, check=check)
     else:
+        sides = layer_sides(p, nrm, spacing, tree, noise_level, check)
+        layers = (sides[0][sub] > 0, sides[1][sub] > 0)
         dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
         sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, directions=-dirs, noise=noise_level,
                                   layers=layers, check=check)

@@ -131,19 +131,16 @@ class PoUFunction:
         self.features = features
         # The coarse fit is smooth and only stands in far from the data: sample it once on a grid
         # and interpolate, instead of summing its centres at every query. ``far`` (winding numbers
-        # of the input ``data``, nkf_model.winding) overrides its sign where the two disagree,
-        # except at nodes within FAR_NEAR_CELLS cells of the data.
+        # of the input points ``data``, needed with it; nkf_model.winding) overrides its sign where
+        # the two disagree, except at nodes within FAR_NEAR_CELLS cells of the data.
         g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
         nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
         f0 = coarse(nodes, check=check)
         if far is not None:
             w = far(nodes, check)
-            followed = follow_winding(f0, w, winding_scale(w, f0))
-            if data is not None:
-                d, _ = cKDTree(data).query(nodes, distance_upper_bound=FAR_NEAR_CELLS * self.f0_step, workers=-1)
-                followed = np.where(np.isfinite(d), f0, followed)
-            f0 = followed
+            d, _ = cKDTree(data).query(nodes, distance_upper_bound=FAR_NEAR_CELLS * self.f0_step, workers=-1)
+            f0 = np.where(np.isfinite(d), f0, follow_winding(f0, w, winding_scale(w, f0)))
         self.f0_grid = np.ascontiguousarray(f0.reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
 
     def __call__(self, x: np.ndarray, check: Check = None) -> np.ndarray:
