@@ -97,18 +97,24 @@ class PeakRSS:
 
 
 def reference(entry, cache: Path):
-    """Cached reference samples of a corpus mesh: surface points/normals, volume points, occupancy."""
+    """Cached reference samples of a corpus mesh: surface points/normals, volume points, their
+    winding numbers and occupancy (``w > 0.5``)."""
     cache.mkdir(parents=True, exist_ok=True)
     path = cache / f"{entry.name}.npz"
     if path.exists():
         d = np.load(path)
-        return {k: d[k] for k in d.files}
+        d = {k: d[k] for k in d.files}
+        if "vol_w" not in d:  # caches written before the winding numbers were kept
+            v, f = corpus.load(entry)
+            d["vol_w"] = metrics.winding_number(v, f, d["vol_pts"]).astype(np.float32)
+            np.savez_compressed(path, **d)
+        return d
     v, f = corpus.load(entry)
     rng = np.random.default_rng(corpus.stable_seed("reference", entry.name))
     sp, sn = metrics.sample_surface(v, f, N_EVAL, rng)
     vol = metrics.volume_points(N_EVAL, rng)
-    occ = metrics.occupancy(v, f, vol)
-    d = {"surf_pts": sp, "surf_nrm": sn, "vol_pts": vol, "vol_occ": occ}
+    w = metrics.winding_number(v, f, vol)
+    d = {"surf_pts": sp, "surf_nrm": sn, "vol_pts": vol, "vol_occ": w > 0.5, "vol_w": w.astype(np.float32)}
     np.savez_compressed(path, **d)
     return d
 

@@ -116,6 +116,23 @@ def occupancy(vertices, faces, queries) -> np.ndarray:
     return winding_number(vertices, faces, queries) > 0.5
 
 
+AMBIGUOUS_BAND = 0.25  # a winding number further than this from every whole number >= 0 is ambiguous
+
+
+def ambiguous_share(w: np.ndarray, band: float = AMBIGUOUS_BAND) -> float:
+    """Share of winding numbers ``w`` (N,) that say neither inside nor outside.
+
+    A consistently oriented mesh has winding numbers near 0 outside and near 1 inside (near 2
+    where two closed parts overlap). Holes leave values in between, and faces that point inward
+    leave negative values; there the occupancy ``w > 0.5`` of :func:`occupancy` is a guess about
+    the shape. Counted: ``w < -band`` and ``|w - round(w)| > band``.
+    """
+    w = np.asarray(w, dtype=np.float64)
+    if len(w) == 0:
+        return 0.0
+    return float(np.mean((w < -band) | (np.abs(w - np.round(w)) > band)))
+
+
 def volume_points(n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` uniform points in the unit box padded by :data:`PADDING` on each side."""
     h = 0.5 + PADDING
