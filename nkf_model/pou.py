@@ -121,7 +121,7 @@ class PoUFunction:
     """
 
     def __init__(self, lo, h, dims, start, count, cu, beta, coarse: KernelFunction, engine: Engine, features=None,
-                 far: FarField | None = None, data: np.ndarray | None = None, check: Check = None):
+                 far: FarField | None = None, check: Check = None):
         self.lo, self.h, self.dims = float(lo), float(h), int(dims)
         self.start, self.count = start, count
         self.cu = np.ascontiguousarray(cu)  # (D, C)
@@ -131,15 +131,15 @@ class PoUFunction:
         self.features = features
         # The coarse fit is smooth and only stands in far from the data: sample it once on a grid
         # and interpolate, instead of summing its centres at every query. ``far`` (winding numbers
-        # of the input points ``data``, needed with it; nkf_model.winding) overrides its sign where
-        # the two disagree, except at nodes within FAR_NEAR_CELLS cells of the data.
+        # of the input, nkf_model.winding) overrides its sign where the two disagree, except at
+        # nodes within FAR_NEAR_CELLS cells of the input points.
         g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
         nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
         f0 = coarse(nodes, check=check)
         if far is not None:
             w = far(nodes, check)
-            d, _ = cKDTree(data).query(nodes, distance_upper_bound=FAR_NEAR_CELLS * self.f0_step, workers=-1)
+            d, _ = cKDTree(far.points).query(nodes, distance_upper_bound=FAR_NEAR_CELLS * self.f0_step, workers=-1)
             f0 = np.where(np.isfinite(d), f0, follow_winding(f0, w, winding_scale(w, f0)))
         self.f0_grid = np.ascontiguousarray(f0.reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
 
@@ -336,8 +336,7 @@ def fit_pou(
         patch_lam=local_lam,
     )
     far = None if normals is None else FarField(x, normals, seed=seed, check=check)
-    return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far, data=x,
-                       check=check), info
+    return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far, check=check), info
 
 
 def _numba_threads() -> int:

@@ -158,6 +158,7 @@ class FarField:
 
     Call it with queries (Q, 3) float64 (and ``check``, called between chunks of queries); it
     returns (Q,) float64. ``check`` given to the constructor is called between its set-up steps.
+    ``points`` (N, 3) holds the input points (sorted by cluster).
     """
 
     def __init__(self, points: np.ndarray, normals: np.ndarray, clusters: int = FAR_CLUSTERS, seed: int = 0,
@@ -166,7 +167,7 @@ class FarField:
         moment = c.sort(np.asarray(normals, dtype=np.float64)) * c.area[:, None]
         self._args = (c.centre, c.total(moment), (FAR_BETA * c.radius) ** 2)
         self._first = c.first
-        self._x, self._m = c.points, np.ascontiguousarray(moment)
+        self.points, self._m = c.points, np.ascontiguousarray(moment)
 
     def __call__(self, queries: np.ndarray, check=None) -> np.ndarray:
         q = np.ascontiguousarray(queries, dtype=np.float64)
@@ -174,7 +175,8 @@ class FarField:
         for s in range(0, len(q), FAR_CHUNK):  # ``check`` (cancellation) between chunks
             if check is not None:
                 check()
-            out[s : s + FAR_CHUNK] = _clustered_sum(q[s : s + FAR_CHUNK], *self._args, self._first, self._x, self._m)
+            out[s : s + FAR_CHUNK] = _clustered_sum(q[s : s + FAR_CHUNK], *self._args, self._first, self.points,
+                                                    self._m)
         return out
 
 
