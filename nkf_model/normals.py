@@ -90,12 +90,15 @@ class OrientationInfo:
         Points whose sign the views decided (the rest was propagated from them).
     spacing : float
         Median nearest-neighbour distance of the points, in their units.
+    learned_flips : int
+        Points the learned sign check flipped (:mod:`nkf_model.sign_check`).
     """
 
     orientation: str
     pieces: int
     seeded: int = 0
     spacing: float = 0.0
+    learned_flips: int = 0
 
 
 def check_viewpoints(viewpoints) -> Optional[np.ndarray]:
@@ -676,6 +679,8 @@ def orient_normals(
     k: int = DEFAULT_GRAPH_K,
     tree: Optional[cKDTree] = None,
     noise: Optional[np.ndarray] = None,
+    residual: Optional[np.ndarray] = None,
+    learned: bool = True,
     check: Check = None,
 ):
     """Give unoriented unit normals consistent signs.
@@ -694,6 +699,12 @@ def orient_normals(
     noise : (N,) float64, optional
         Local noise level of each point (the ``residual`` of :func:`pca_normals`), in the units of
         ``points``: offsets within it are not read as geometry.
+    residual : (N,) float64, optional
+        Each point's own plane-fit residual (``noise`` when not given), read by the learned sign
+        check.
+    learned : bool
+        For ``"outward"``: finish with the learned sign check (:mod:`nkf_model.sign_check`, clouds
+        of at most :data:`~nkf_model.sign_check.MAX_POINTS` points).
 
     Returns
     -------
@@ -701,6 +712,21 @@ def orient_normals(
         Oriented unit normals.
     info : OrientationInfo
     """
+    sign, state, info = _orient(points, normals, orientation=orientation, viewpoints=viewpoints, k=k, tree=tree,
+                                noise=noise, residual=residual, check=check)
+    if learned and info.orientation == "outward":
+        from .sign_check import flip_wrong
+
+        sign, info.learned_flips = flip_wrong(state, check=check)
+    return state.normals * sign[:, None], info
+
+
+def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residual, check):
+    """Signs (N,), the :class:`~nkf_model.sign_check.OrientationState` behind them and the
+    :class:`OrientationInfo`: :func:`orient_normals` without the learned check (also used to
+    train it)."""
+    from .sign_check import OrientationState
+
     p = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
     vp = check_viewpoints(viewpoints)
@@ -748,7 +774,8 @@ def orient_normals(
         # Thin parts with both faces sampled belong to objects (a scanner sees one side of each
         # surface). Their layer votes join the global fit only: as hard seeds of the spanning tree,
         # a few wrong ones (the facing sides of a narrow gap) would decide everything behind them.
-        seed = _layer_seeds(g, nrm, layer_votes(p, nrm, spacing, tree, sides=sides), seed)
+        lv = layer_votes(p, nrm, spacing, tree, sides=sides)
+        seed = _layer_seeds(g, nrm, lv, seed)
     sign = _harmonic_signs(g, p, nrm, sign, seed, noise, check)
     sign = _consensus(g, p, nrm, sign, votes, check, noise=noise)
     if orientation == "outward":
@@ -758,7 +785,14 @@ def orient_normals(
                               check)
     info = OrientationInfo(orientation=orientation, pieces=pieces,
                            seeded=n_seeded, spacing=spacing)
-    return nrm * sign[:, None], info
+    if sides is None:  # viewpoint: no layer votes
+        sides = (np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64))
+        lv = np.zeros(n)
+    res = residual if residual is not None else (noise if noise is not None else np.zeros(n))
+    state = OrientationState(points=p, normals=nrm, sign=sign, votes=votes, weight=weight, view_seed=view_seed,
+                             layer_seed=seed, layer_vote=lv, above=sides[0], below=sides[1], graph=g,
+                             residual=np.asarray(res, dtype=np.float64), spacing=spacing)
+    return sign, state, info
 
 
 def estimate_normals(
@@ -799,4 +833,5 @@ def estimate_normals(
     # One noise level for the whole cloud, from its flattest quarter: residuals also grow with
     # curvature and at sharp edges, where offsets along the normals are geometry, not noise.
     noise = np.full(len(p), float(np.quantile(residual, NOISE_QUANTILE)))
-    return orient_normals(p, nrm, orientation=orientation, viewpoints=vp, tree=tree, noise=noise, check=check)
+    return orient_normals(p, nrm, orientation=orientation, viewpoints=vp, tree=tree, noise=noise,
+                          residual=residual, check=check)
