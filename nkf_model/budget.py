@@ -27,6 +27,8 @@ POU_EVALS_PER_NODE = 1300  # kernel evaluations per grid point with ~80 points p
 FLOPS = 25e9  # dense Cholesky, float64
 POU_FIT_PER_POINT = 25e-6  # seconds per point for the local solves
 NORMALS_PER_POINT = 60e-6  # seconds per point for PCA, views and propagation
+# ... and for the learned sign check (sign_check.MAX_POINTS points at most; measured 30 us a point)
+SIGN_CHECK_PER_POINT = 30e-6
 INPUT_PER_POINT = 1.5e-6  # seconds per input point: cleaning, normalising, reducing
 MESH_PER_NODE = 0.6e-6  # seconds per evaluated grid point: band bookkeeping and marching cubes
 FALKON_ITERATIONS = 40
@@ -166,7 +168,9 @@ def plan(
     seconds = FIXED_SECONDS + INPUT_PER_POINT * n_in + MESH_PER_NODE * nodes
     mem_stage = []
     if estimate_normals:
-        seconds += NORMALS_PER_POINT * n
+        from .sign_check import MAX_POINTS
+
+        seconds += NORMALS_PER_POINT * n + (SIGN_CHECK_PER_POINT * n if n <= MAX_POINTS else 0.0)
         mem_stage.append(BYTES_NORMALS * n)
     m2 = 2 * n
     learned = method == "nkf"

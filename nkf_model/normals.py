@@ -90,14 +90,18 @@ class OrientationInfo:
         Points whose sign the views decided (the rest was propagated from them).
     spacing : float
         Median nearest-neighbour distance of the points, in their units.
+    learned_check : bool
+        Whether the learned sign check ran (:mod:`nkf_model.sign_check`: ``"outward"``, at most
+        :data:`~nkf_model.sign_check.MAX_POINTS` points, ``safetensors`` installed).
     learned_flips : int
-        Points the learned sign check flipped (:mod:`nkf_model.sign_check`).
+        Points it flipped.
     """
 
     orientation: str
     pieces: int
     seeded: int = 0
     spacing: float = 0.0
+    learned_check: bool = False
     learned_flips: int = 0
 
 
@@ -717,7 +721,8 @@ def orient_normals(
     if learned and info.orientation == "outward":
         from .sign_check import flip_wrong
 
-        sign, info.learned_flips = flip_wrong(state, check=check)
+        sign, flips = flip_wrong(state, check=check)
+        info.learned_check, info.learned_flips = flips is not None, flips or 0
     return state.normals * sign[:, None], info
 
 

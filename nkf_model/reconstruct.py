@@ -424,6 +424,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
         "normals": "estimated" if estimate_n else "given",
         "orientation": None if normal_info is None else {
             "rule": normal_info.orientation, "pieces": normal_info.pieces, "decided_by_views": normal_info.seeded,
+            "learned_check": normal_info.learned_check, "flipped_by_learned_check": normal_info.learned_flips,
         },
         "pou": None if pou_info is None else dict(pou_info.__dict__),
         "feature_scale": feature_scale,

@@ -196,19 +196,25 @@ _LOADED: dict = {}
 
 
 def default_check() -> Optional[SignCheck]:
-    """The shipped network (loaded once), or None when the package has no such file."""
+    """The shipped network (loaded once), or None when the package has no such file or
+    ``safetensors`` is not installed (optional in Blender: the orientation then runs without it)."""
     if "net" not in _LOADED:
-        _LOADED["net"] = SignCheck.load() if WEIGHTS.is_file() else None
+        try:
+            import safetensors  # noqa: F401
+        except ImportError:
+            _LOADED["net"] = None
+        else:
+            _LOADED["net"] = SignCheck.load() if WEIGHTS.is_file() else None
     return _LOADED["net"]
 
 
 def flip_wrong(state: OrientationState, net: Optional[SignCheck] = None, check=None):
     """Signs (N,) with the points the network finds wrong (probability >= FLIP_PROBABILITY)
-    flipped, and the number flipped. Without a network, or above MAX_POINTS points, the signs
-    come back unchanged."""
+    flipped, and the number flipped, or None where the check did not run (no network, more than
+    MAX_POINTS points, fewer than 20): then the signs come back unchanged."""
     net = net if net is not None else default_check()
     if net is None or len(state.points) > MAX_POINTS or len(state.points) < 20:
-        return state.sign, 0
+        return state.sign, None
     prob = net(point_features(state, check))
     flip = prob >= FLIP_PROBABILITY
     return np.where(flip, -state.sign, state.sign), int(flip.sum())

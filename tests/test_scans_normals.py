@@ -181,6 +181,8 @@ def test_reconstruct_estimates_missing_normals_and_says_so():
     with pytest.warns(nkf_model.InputWarning, match="no normals given"):
         m = nkf_model.reconstruct(p, None, resolution=48, device="cpu")
     assert m.stats["normals"] == "estimated"
+    assert m.stats["orientation"]["learned_check"] is True
+    assert 0 <= m.stats["orientation"]["flipped_by_learned_check"] <= 15
     assert np.abs(np.linalg.norm(m.vertices, axis=1) - 1).max() < 0.03
     # normals_mode="estimate" ignores given normals (here deliberately wrong ones).
     m2 = nkf_model.reconstruct(p, -p, resolution=48, device="cpu", normals_mode="estimate")
