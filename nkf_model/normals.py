@@ -7,7 +7,7 @@ Two steps, both on the CPU with SciPy:
    weights ``exp(-(r / sigma)^2)`` of each neighbour's distance ``r`` to the current plane, starting
    from the 7 nearest: on a plate thinner than the neighbourhood, plain PCA mixes both faces into a
    meaningless normal, the reweighted fit keeps to the point's own face. Its sign is arbitrary.
-2. :func:`orient_normals`: consistent signs, in four steps.
+2. :func:`orient_normals`: consistent signs, in five steps.
 
    a. Seeds from views. Every point is drawn as a disc in its tangent plane into depth buffers: 64
       orthographic views from all around (``"outward"``, closed objects), from the upper half
@@ -43,6 +43,9 @@ Two steps, both on the CPU with SciPy:
       Its gradient at a point, from the rest of the surface, points inward; points the views did
       not seed take the sign that agrees with it, a few rounds over. That reaches faces hidden
       inside other parts and behind lids, which the graph decides poorly.
+   e. Closed objects of at most 20,000 points: a small network trained on the corpus's ``train``
+      split reads every step's evidence per point and flips the signs it finds still wrong
+      (:mod:`nkf_model.sign_check`).
 
 Noise: the noise level of the cloud (the flattest quarter's plane-fit residual) widens the depth
 tolerance of the views and keeps offsets along the normals that are within the noise from being
