@@ -112,6 +112,7 @@ def main(argv=None) -> int:
     ap.add_argument("--holdout", type=int, default=HOLDOUT)
     ap.add_argument("--limit", type=int, default=None, help="train on the first N meshes only")
     ap.add_argument("--epochs", type=int, default=6)
+    ap.add_argument("--seed", type=int, default=0, help="seed of the network's start and of the batches")
     ap.add_argument("--cache", type=Path, default=Path(".sign-check-cache"))
     ap.add_argument("--out", type=Path, default=WEIGHTS)
     args = ap.parse_args(argv)
@@ -139,10 +140,10 @@ def main(argv=None) -> int:
     x, y = np.concatenate(xs), np.concatenate(ys)
     log(f"{len(xs)} meshes, {len(y):,} points, {y.mean():.2%} with a wrong sign; left out (labels disagree "
         f"with the orientation on most points): {', '.join(skipped) or 'none'}")
-    net, loss = train(x, y, args.epochs, log=log)
+    net, loss = train(x, y, args.epochs, seed=args.seed, log=log)
     net.training = {
         "split": "train", "meshes": len(xs), "left_out": skipped, "held_out": len(held), "points_per_mesh": args.points,
-        "points": int(len(y)), "wrong_share": round(float(y.mean()), 5), "epochs": args.epochs,
+        "points": int(len(y)), "wrong_share": round(float(y.mean()), 5), "epochs": args.epochs, "seed": args.seed,
         "final_loss": round(loss, 5), "features": list(FEATURES), "hidden": HIDDEN,
     }
     net.save(args.out)
