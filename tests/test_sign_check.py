@@ -121,3 +121,25 @@ def test_large_clouds_skip_the_check(monkeypatch):
     monkeypatch.setitem(sign_check._LOADED, "net", None)  # as without safetensors
     new, flips = flip_wrong(state)
     assert flips is None and np.array_equal(new, state.sign)
+
+
+def test_training_labels_turn_meshes_wound_inside_out_around():
+    from nkf_model.train_sign_check import holdout_split, outward_samples
+
+    # A unit cube wound outward, and the same cube wound inside out: outward labels from both.
+    v = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    p, n = outward_samples(v, f, 500, 0.0, seed=3)
+    assert (np.sum(p * n, axis=1) > 0).all()  # outward: away from the centre
+    q, m = outward_samples(v, f[:, ::-1], 500, 0.0, seed=3)
+    assert (np.sum(q * m, axis=1) > 0).all()
+
+    class E:
+        def __init__(self, name):
+            self.name = name
+
+    entries = [E(f"mesh{i}") for i in range(10)]
+    fit, held = holdout_split(entries, 3)
+    assert len(held) == 3 and len(fit) == 7 and not {e.name for e in fit} & {e.name for e in held}
+    assert [e.name for e in holdout_split(entries[::-1], 3)[1]] == [e.name for e in held]
