@@ -18,6 +18,7 @@ import os
 from dataclasses import asdict, dataclass
 
 from .errors import MemoryBudgetError
+from .sign_check import MAX_POINTS as SIGN_CHECK_MAX_POINTS
 
 # --- fitted constants (reference CPU, 2 threads) ---------------------------------------------
 NODES_PER_R2 = 22.0  # grid points evaluated over all levels, per resolution^2 (objects)
@@ -168,9 +169,7 @@ def plan(
     seconds = FIXED_SECONDS + INPUT_PER_POINT * n_in + MESH_PER_NODE * nodes
     mem_stage = []
     if estimate_normals:
-        from .sign_check import MAX_POINTS
-
-        seconds += NORMALS_PER_POINT * n + (SIGN_CHECK_PER_POINT * n if n <= MAX_POINTS else 0.0)
+        seconds += NORMALS_PER_POINT * n + (SIGN_CHECK_PER_POINT * n if n <= SIGN_CHECK_MAX_POINTS else 0.0)
         mem_stage.append(BYTES_NORMALS * n)
     m2 = 2 * n
     learned = method == "nkf"

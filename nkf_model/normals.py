@@ -604,13 +604,14 @@ def _winding_signs(points, normals, sign, fixed, layer, spacing, check: Check = 
     their field comes from the rest of the shape. There (``layer`` (N,) bool) a point follows it
     only where the field is strong: ``|g . n| * spacing`` at least :data:`WINDING_LAYER_FIELD`.
     Above :data:`WINDING_POINTS` points, a random subset is refined and then the field of the
-    subset decides the rest once.
+    subset decides the rest once. Returns the signs and the field when it holds every point
+    (else None).
     """
     from .winding import AREA_NEIGHBOURS, WindingGradient
 
     n = len(points)
     if n <= AREA_NEIGHBOURS:
-        return sign
+        return sign, None
     sub = np.arange(n)
     sub_spacing = spacing
     if n > WINDING_POINTS:
@@ -634,7 +635,8 @@ def _winding_signs(points, normals, sign, fixed, layer, spacing, check: Check = 
     if len(sub) < n:
         rest = np.setdiff1d(np.arange(n), sub)
         s[rest] = follow(s, field(s[sub], points[rest], check=check), rest)
-    return s
+        return s, None
+    return s, field
 
 
 N_VIEWS = 64  # orthographic views for "outward" (all around) and "up" (upper half)
@@ -721,6 +723,11 @@ def orient_normals(
     """
     sign, state, info = _orient(points, normals, orientation=orientation, viewpoints=viewpoints, k=k, tree=tree,
                                 noise=noise, residual=residual, check=check)
+    return _checked(sign, state, info, learned, check)
+
+
+def _checked(sign, state, info, learned: bool, check: Check):
+    """Oriented normals (N, 3) and ``info``, after the learned sign check where it applies."""
     if learned and info.orientation == "outward":
         from .sign_check import flip_wrong
 
@@ -789,8 +796,10 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     if orientation == "outward":
         # Closed objects: the winding number's field says which side is in where the views saw
         # nothing (open scans and terrain have no inside).
-        sign = _winding_signs(p, nrm, sign, view_seed != 0, (sides[0] > 0) | (sides[1] > 0), spacing,
-                              check)
+        sign, winding = _winding_signs(p, nrm, sign, view_seed != 0, (sides[0] > 0) | (sides[1] > 0), spacing,
+                                       check)
+    else:
+        winding = None
     info = OrientationInfo(orientation=orientation, pieces=pieces,
                            seeded=n_seeded, spacing=spacing)
     if sides is None:  # viewpoint: no layer votes
@@ -799,7 +808,7 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     res = residual if residual is not None else (noise if noise is not None else np.zeros(n))
     state = OrientationState(points=p, normals=nrm, sign=sign, votes=votes, weight=weight, view_seed=view_seed,
                              layer_seed=seed, layer_vote=lv, above=sides[0], below=sides[1], graph=g,
-                             residual=np.asarray(res, dtype=np.float64), spacing=spacing)
+                             residual=np.asarray(res, dtype=np.float64), spacing=spacing, winding=winding)
     return sign, state, info
 
 
@@ -835,11 +844,17 @@ def estimate_normals(
         raise InvalidParameterError(f"normal neighbours k must be an integer from 3 to 200, got {k!r}")
     vp = check_viewpoints(viewpoints)
     orientation = check_orientation(orientation, vp)
+    return _checked(*_estimate(points, k, orientation, vp, check), learned=True, check=check)
+
+
+def _estimate(points, k: int, orientation: str, viewpoints, check: Check = None):
+    """PCA normals of ``points`` oriented without the learned check: what :func:`_orient`
+    returns (also used to train the check, :mod:`nkf_model.train_sign_check`)."""
     p = np.ascontiguousarray(points, dtype=np.float64)
     tree = cKDTree(p)
     nrm, residual = pca_normals(p, k, tree=tree, check=check)
     # One noise level for the whole cloud, from its flattest quarter: residuals also grow with
     # curvature and at sharp edges, where offsets along the normals are geometry, not noise.
     noise = np.full(len(p), float(np.quantile(residual, NOISE_QUANTILE)))
-    return orient_normals(p, nrm, orientation=orientation, viewpoints=vp, tree=tree, noise=noise,
-                          residual=residual, check=check)
+    return _orient(p, nrm, orientation=orientation, viewpoints=viewpoints, k=DEFAULT_GRAPH_K, tree=tree,
+                   noise=noise, residual=residual, check=check)

@@ -75,6 +75,8 @@ class OrientationState:
         Plane-fit residual of each point, in the units of ``points``.
     spacing : float
         Median nearest-neighbour distance, in the units of ``points``.
+    winding : :class:`~nkf_model.winding.WindingGradient` or None
+        The winding-number step's field over every point, when it built one (reused here).
     """
 
     points: np.ndarray
@@ -90,6 +92,7 @@ class OrientationState:
     graph: object
     residual: np.ndarray
     spacing: float
+    winding: object = None
 
 
 def point_features(state: OrientationState, check=None) -> np.ndarray:
@@ -109,7 +112,9 @@ def point_features(state: OrientationState, check=None) -> np.ndarray:
     f["layer_front"], f["layer_back"] = np.log1p(front), np.log1p(back)
     f["layer_vote_rel"] = state.layer_vote * s
     f["layer_seed_rel"] = state.layer_seed * s
-    grad = WindingGradient(p, nrm, WINDING_EXCLUDE * sp, check=check)(s, check=check)
+    winding = state.winding if state.winding is not None else WindingGradient(p, nrm, WINDING_EXCLUDE * sp,
+                                                                              check=check)
+    grad = winding(s, check=check)
     f["wgrad"] = -np.sum(grad * on, axis=1) * sp
     field = FarField(p, on, check=check)
     for d in OFFSETS:
@@ -139,18 +144,15 @@ class SignCheck:
     @classmethod
     def load(cls, path=None) -> SignCheck:
         """Read a weights file (default: the one shipped in the package); raises WeightsError."""
-        from safetensors import SafetensorError
-        from safetensors.numpy import load_file
+        from safetensors import SafetensorError, safe_open
 
         path = Path(path) if path is not None else WEIGHTS
         if not path.is_file():
             raise WeightsError(f"sign-check weights {path} are missing; reinstall the package")
         try:
-            from safetensors import safe_open
-
             with safe_open(str(path), framework="numpy") as fh:
                 meta = fh.metadata() or {}
-            t = load_file(str(path))
+                t = {k: fh.get_tensor(k) for k in fh.keys()}
         except (SafetensorError, OSError, ValueError) as exc:
             raise WeightsError(f"sign-check weights {path} cannot be read: {exc}") from exc
         if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from . import corpus
-from .normals import DEFAULT_GRAPH_K, DEFAULT_K, NOISE_QUANTILE, _orient, pca_normals
+from .normals import DEFAULT_K, _estimate
 from .sign_check import FEATURES, WEIGHTS, SignCheck, point_features
 
 HOLDOUT = 60
@@ -61,16 +61,10 @@ def mesh_features(entry, n_points: int = 10_000, noise: float = 0.0):
     """Features (n, F) float32 and labels (n,) float32 (1 where the oriented sign is wrong, against
     :func:`outward_samples`' normals) of one corpus mesh, sampled as
     :mod:`nkf_model.bench_normals` samples it."""
-    from scipy.spatial import cKDTree
-
     v, f = corpus.load(entry)
     pts, true_nrm = outward_samples(v, f, n_points, noise, corpus.stable_seed("input", entry.name, n_points, noise))
-    p = np.ascontiguousarray(pts, dtype=np.float64)
-    tree = cKDTree(p)
-    nrm, residual = pca_normals(p, DEFAULT_K, tree=tree)
-    flat = np.full(len(p), float(np.quantile(residual, NOISE_QUANTILE)))
-    sign, state, _ = _orient(p, nrm, orientation="outward", viewpoints=None, k=DEFAULT_GRAPH_K, tree=tree,
-                             noise=flat, residual=residual, check=None)
+    sign, state, _ = _estimate(pts, DEFAULT_K, "outward", None)
+    nrm = state.normals
     y = (np.sum(nrm * sign[:, None] * true_nrm, axis=1) < 0).astype(np.float32)
     return point_features(state), y
 

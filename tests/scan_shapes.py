@@ -46,3 +46,14 @@ def open_box_points(n: int, wall: float, seed: int = 0):
         ps.append(p)
         ns.append(q)
     return np.concatenate(ps), np.concatenate(ns)
+
+
+def cube_mesh(half: float = 0.4):
+    """Vertices (8, 3) and outward-wound triangles (12, 3) of the cube [-half, half]^3."""
+    v = np.array([[x, y, z] for x in (-half, half) for y in (-half, half) for z in (-half, half)])
+    # Outward-facing triangles of the cube with corners v[4x + 2y + z].
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    f = []
+    for a, b, c, d in quads:
+        f += [(a, b, c), (a, c, d)]
+    return v, np.array(f)

@@ -1,19 +1,14 @@
 """The normals benchmark says which references are no solid (holes, faces pointing inward)."""
 
 import numpy as np
+from scan_shapes import cube_mesh
 
 from nkf_model import metrics
 from nkf_model.bench_normals import format_table
 
 
 def _cube():
-    v = np.array([[x, y, z] for x in (-0.4, 0.4) for y in (-0.4, 0.4) for z in (-0.4, 0.4)])
-    # Outward-facing triangles of the cube with corners v[4x + 2y + z].
-    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-    f = []
-    for a, b, c, d in quads:
-        f += [(a, b, c), (a, c, d)]
-    return v, np.array(f)
+    return cube_mesh(0.4)
 
 
 def _queries(n=4000):

@@ -5,22 +5,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scan_shapes import box_points, open_box_points
-from scipy.spatial import cKDTree
+from scan_shapes import box_points, cube_mesh, open_box_points
 from shapes import sphere_points
 
 from nkf_model import sign_check
 from nkf_model.errors import WeightsError
-from nkf_model.normals import DEFAULT_GRAPH_K, _orient, estimate_normals, orient_normals, pca_normals
+from nkf_model.normals import _estimate, estimate_normals, orient_normals, pca_normals
 from nkf_model.sign_check import FEATURES, SignCheck, flip_wrong, point_features
 
 
 def oriented_state(p):
-    tree = cKDTree(p)
-    nrm, residual = pca_normals(p, 16, tree=tree)
-    flat = np.full(len(p), float(np.quantile(residual, 0.25)))
-    return _orient(p, nrm, orientation="outward", viewpoints=None, k=DEFAULT_GRAPH_K, tree=tree, noise=flat,
-                   residual=residual, check=None)
+    return _estimate(p, 16, "outward", None)
 
 
 def test_shipped_weights_load_and_read_these_features():
@@ -127,9 +122,7 @@ def test_training_labels_turn_meshes_wound_inside_out_around():
     from nkf_model.train_sign_check import holdout_split, outward_samples
 
     # A unit cube wound outward, and the same cube wound inside out: outward labels from both.
-    v = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
-    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    v, f = cube_mesh(0.5)
     p, n = outward_samples(v, f, 500, 0.0, seed=3)
     assert (np.sum(p * n, axis=1) > 0).all()  # outward: away from the centre
     q, m = outward_samples(v, f[:, ::-1], 500, 0.0, seed=3)
