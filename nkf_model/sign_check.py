@@ -144,17 +144,12 @@ class SignCheck:
     @classmethod
     def load(cls, path=None) -> SignCheck:
         """Read a weights file (default: the one shipped in the package); raises WeightsError."""
-        from safetensors import SafetensorError, safe_open
+        from .weights import read_safetensors
 
         path = Path(path) if path is not None else WEIGHTS
         if not path.is_file():
             raise WeightsError(f"sign-check weights {path} are missing; reinstall the package")
-        try:
-            with safe_open(str(path), framework="numpy") as fh:
-                meta = fh.metadata() or {}
-                t = {k: fh.get_tensor(k) for k in fh.keys()}
-        except (SafetensorError, OSError, ValueError) as exc:
-            raise WeightsError(f"sign-check weights {path} cannot be read: {exc}") from exc
+        t, meta = read_safetensors(path)
         if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
             raise WeightsError(f"{path} is not a sign-check weights file of version {FORMAT_VERSION}")
         names = tuple(json.loads(meta.get("features", "[]")))

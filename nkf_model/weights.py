@@ -61,11 +61,11 @@ def save_weights(path, net, *, lam: float, training: dict | None = None) -> Path
     return path
 
 
-def read_weights(path):
-    """Tensors and metadata of a weights file, checked; returns ``(tensors, meta, config)``."""
+def read_safetensors(path, framework: str = "numpy"):
+    """Tensors (as ``framework`` arrays: ``"numpy"`` or ``"pt"``) and metadata of a safetensors
+    file: ``(dict, dict)``. Every problem raises :class:`~nkf_model.errors.WeightsError` naming
+    the file."""
     from safetensors import safe_open
-
-    from .features import FeatureConfig
 
     path = Path(path)
     if not path.exists():
@@ -73,7 +73,7 @@ def read_weights(path):
     if not path.is_file():
         raise WeightsError(f"weights path {path} is not a file")
     try:
-        with safe_open(str(path), framework="pt") as fh:
+        with safe_open(str(path), framework=framework) as fh:
             meta = fh.metadata() or {}
             tensors = {k: fh.get_tensor(k) for k in fh.keys()}
     except PermissionError:
@@ -82,6 +82,15 @@ def read_weights(path):
         raise WeightsError(
             f"weights file {path} is not a valid safetensors file (truncated or corrupt?): {exc}"
         ) from None
+    return tensors, meta
+
+
+def read_weights(path):
+    """Tensors and metadata of a weights file, checked; returns ``(tensors, meta, config)``."""
+    from .features import FeatureConfig
+
+    path = Path(path)
+    tensors, meta = read_safetensors(path, framework="pt")
     if meta.get("format") != FORMAT:
         raise WeightsError(f"weights file {path} is a safetensors file but not NKF weights (no '{FORMAT}' tag)")
     if meta.get("format_version") != FORMAT_VERSION:
