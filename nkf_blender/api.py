@@ -88,7 +88,7 @@ def reconstruct_object(
         Which way estimated normals point; ``"viewpoint"``: towards the scene camera.
     trim : float, optional
         For open scans: cut the surface farther than this many point spacings from every point
-        (``nkf_model.trim.SCAN_TRIM`` = 4 suits scans); ``None`` keeps the closed surface.
+        (``nkf_model.surface.trim.SCAN_TRIM`` = 4 suits scans); ``None`` keeps the closed surface.
     min_piece : float
         Drop connected pieces under this fraction of the area (scans: 0.002); 0 keeps all.
     close : bool

@@ -43,7 +43,7 @@ def resolve_budget(memory_budget: int | None) -> int:
     """The budget in bytes: the given one, or nkf_model's default (60 % of memory, at most 16 GiB)."""
     if memory_budget:
         return int(memory_budget)
-    from nkf_model.budget import default_memory_budget
+    from nkf_model.pipeline.budget import default_memory_budget
 
     return int(default_memory_budget())
 

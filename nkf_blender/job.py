@@ -32,7 +32,7 @@ STAGE_LABELS = {
 }
 
 
-# The scan defaults of nkf_model.trim (SCAN_TRIM, SCAN_MIN_PIECE), repeated here so that the
+# The scan defaults of nkf_model.surface.trim (SCAN_TRIM, SCAN_MIN_PIECE), repeated here so that the
 # add-on registers even when nkf_model's dependencies are missing; a test keeps them equal.
 SCAN_TRIM = 4.0
 SCAN_MIN_PIECE = 0.002

@@ -10,7 +10,6 @@ NumPy in, NumPy out; no Blender needed. The main entry point is :func:`reconstru
 ``method="splines"`` is the data-free Neural Splines kernel (Williams et al., CVPR 2021).
 """
 
-from .budget import Estimate, estimate
 from .errors import (
     Cancelled,
     DegenerateInputError,
@@ -26,11 +25,12 @@ from .errors import (
     TooFewPointsError,
     WeightsError,
 )
-from .fallback import DeviceWarning
-from .mesh import Mesh
-from .normals import estimate_normals
-from .reconstruct import METHODS, InputWarning, reconstruct
-from .weights import method_available
+from .kernel.weights import method_available
+from .normals.estimate import estimate_normals
+from .pipeline.budget import Estimate, estimate
+from .pipeline.device_fallback import DeviceWarning
+from .pipeline.reconstruct import METHODS, InputWarning, reconstruct
+from .surface.mesh import Mesh
 
 __version__ = "0.1.0"
 

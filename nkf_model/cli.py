@@ -18,10 +18,9 @@ import numpy as np
 
 from . import __version__
 from .errors import Cancelled, MissingNormalsError, NKFInputError
-from .evaluate import MAX_RESOLUTION, MIN_RESOLUTION
-from .fileio import check_output_path, read_point_cloud, write_mesh
-from .normals import ORIENTATIONS
-from .reconstruct import (
+from .io.files import check_output_path, read_point_cloud, write_mesh
+from .normals.estimate import ORIENTATIONS
+from .pipeline.reconstruct import (
     DEFAULT_CENTRES,
     DEFAULT_LAM,
     DEFAULT_METHOD,
@@ -33,7 +32,8 @@ from .reconstruct import (
     check_scan_settings,
     check_settings,
 )
-from .trim import SCAN_MIN_PIECE, SCAN_TRIM
+from .surface.evaluate import MAX_RESOLUTION, MIN_RESOLUTION
+from .surface.trim import SCAN_MIN_PIECE, SCAN_TRIM
 
 EXIT_INPUT = 1
 EXIT_INTERNAL = 3
@@ -149,8 +149,8 @@ def _scan_settings(args):
 
 
 def cmd_reconstruct(args) -> int:
-    from . import budget as budget_mod
-    from .reconstruct import reconstruct
+    from .pipeline import budget as budget_mod
+    from .pipeline.reconstruct import reconstruct
 
     check_settings(args.method, args.lam, args.resolution, args.device, None, DEFAULT_CENTRES)
     trim, min_piece, reduce_to, memory_budget = _scan_settings(args)
@@ -159,7 +159,7 @@ def cmd_reconstruct(args) -> int:
         raise NKFInputError(f"--max-points must be at least 10, got {args.max_points}")
     out = check_output_path(args.output)
     if args.method == "nkf":
-        from .weights import load_weights
+        from .kernel.weights import load_weights
 
         load_weights(args.weights)  # a bad weights file fails before the input is read
     t0 = time.perf_counter()
@@ -239,7 +239,7 @@ def main(argv=None) -> int:
         if args.command == "reconstruct":
             return cmd_reconstruct(args)
         if args.command == "train":
-            from .training import main as train_main
+            from .train.kernel_training import main as train_main
 
             return train_main(args)
         ap.error(f"unknown command {args.command}")  # pragma: no cover - argparse guards this

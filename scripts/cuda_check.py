@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from nkf_model import reconstruct
-from nkf_model.engines import cuda_available
-from nkf_model.fileio import read_point_cloud
+from nkf_model.io.files import read_point_cloud
+from nkf_model.kernel.engines import cuda_available
+from nkf_model.pipeline import reconstruct
 
 
 def _chamfer(a, b):

@@ -1,4 +1,4 @@
-"""Fit the polynomial behind the fast angle term of ``nkf_model._numba_kernels``.
+"""Fit the polynomial behind the fast angle term of ``nkf_model.kernel._numba_kernels``.
 
 For unit vectors ``u, v`` with ``d2 = |u - v|^2`` and angle ``t``, the Neural Spline angle term is
 ``g = sin t + 2 (pi - t) cos t``. With ``s = sqrt(d2)``: ``t = 2 asin(s / 2)``, ``cos t = 1 - d2 / 2`` and

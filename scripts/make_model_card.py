@@ -21,8 +21,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from nkf_model import corpus  # noqa: E402
-from nkf_model.weights import read_weights  # noqa: E402
+from nkf_model.kernel.weights import read_weights  # noqa: E402
+from nkf_model.train import corpus  # noqa: E402
 
 
 def _read(path):

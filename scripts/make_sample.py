@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nkf_model import corpus
-from nkf_model.fileio import read_mesh, write_point_cloud
-from nkf_model.metrics import sample_surface
+from nkf_model.io.files import read_mesh, write_point_cloud
+from nkf_model.train import corpus
+from nkf_model.train.metrics import sample_surface
 
 SOURCE = "cinolib__blub_triangulated.ply"
 

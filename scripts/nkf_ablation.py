@@ -20,11 +20,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from nkf_model import corpus  # noqa: E402
-from nkf_model.augment import augment, default_eps  # noqa: E402
-from nkf_model.training import example_field, field_iou, load_config  # noqa: E402
-from nkf_model.trainset import build_cache, validation_example  # noqa: E402
-from nkf_model.weights import load_weights  # noqa: E402
+from nkf_model.fit.augment import augment, default_eps  # noqa: E402
+from nkf_model.kernel.weights import load_weights  # noqa: E402
+from nkf_model.train import corpus  # noqa: E402
+from nkf_model.train.examples import build_cache, validation_example  # noqa: E402
+from nkf_model.train.kernel_training import example_field, field_iou, load_config  # noqa: E402
 
 SETTINGS = [(300, 0.0, False), (300, 0.005, False), (1000, 0.0, False), (1000, 0.005, False),
             (3000, 0.0, False), (3000, 0.0, True)]

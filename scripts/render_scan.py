@@ -16,7 +16,7 @@ import numba as nb
 import numpy as np
 from PIL import Image
 
-from nkf_model.fileio import read_point_cloud, write_point_cloud  # noqa: F401  (documented reader)
+from nkf_model.io.files import read_point_cloud, write_point_cloud  # noqa: F401  (documented reader)
 
 
 @nb.njit(cache=True)

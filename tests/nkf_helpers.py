@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from nkf_model.features import FeatureConfig, FeatureNet
-from nkf_model.weights import save_weights
+from nkf_model.kernel.feature_net import FeatureConfig, FeatureNet
+from nkf_model.kernel.weights import save_weights
 
 TINY = FeatureConfig(grid=8, pointnet_width=8, unet_width=4, unet_levels=2, feature_dim=8, point_weights=False)
 

@@ -3,8 +3,8 @@
 import numpy as np
 from scan_shapes import cube_mesh
 
-from nkf_model import metrics
-from nkf_model.bench_normals import format_table
+from benchmarks.bench_normals import format_table
+from nkf_model.train import metrics
 
 
 def _cube():

@@ -13,7 +13,7 @@ import pytest
 from shapes import sphere_points
 
 from nkf_model.cli import main
-from nkf_model.fileio import read_mesh, write_point_cloud
+from nkf_model.io.files import read_mesh, write_point_cloud
 
 SAMPLE = Path(__file__).resolve().parent.parent / "nkf_model" / "data" / "sample.ply"
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from nkf_model.errors import OutputPathError, PointCloudFileError
-from nkf_model.fileio import read_mesh, read_point_cloud, write_mesh, write_point_cloud
+from nkf_model.io.files import read_mesh, read_point_cloud, write_mesh, write_point_cloud
 
 
 def test_point_cloud_round_trip(tmp_path):
@@ -48,7 +48,7 @@ def test_mesh_round_trip_ply_and_obj(tmp_path):
 def test_write_is_atomic_when_interrupted(tmp_path, monkeypatch):
     target = tmp_path / "m.ply"
     target.write_bytes(b"old")
-    import nkf_model.fileio as fio
+    import nkf_model.io.files as fio
 
     def boom(*a, **k):
         raise KeyboardInterrupt

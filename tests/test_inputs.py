@@ -10,7 +10,7 @@ from shapes import sphere_points
 
 import nkf_model
 from nkf_model import errors
-from nkf_model.inputs import clean_points
+from nkf_model.points.clean import clean_points
 
 
 def test_errors_are_value_errors():

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from nkf_model.engines import NumbaEngine, TorchEngine
-from nkf_model.kernel import angle_term, homogeneous, ns_kernel, ns_kernel_torch, split_unit
+from nkf_model.kernel.engines import NumbaEngine, TorchEngine
+from nkf_model.kernel.neural_spline import angle_term, homogeneous, ns_kernel, ns_kernel_torch, split_unit
 
 
 def textbook(a, b):

@@ -7,9 +7,15 @@ import pytest
 import torch
 from nkf_helpers import TINY, tiny_net
 
-from nkf_model.evaluate import GRID_HALF
-from nkf_model.features import FeatureConfig, FeatureNet, cell_coordinates, sample_grid_numpy, sample_grid_torch
-from nkf_model.learned import _gated_trilinear
+from nkf_model.kernel.feature_net import (
+    FeatureConfig,
+    FeatureNet,
+    cell_coordinates,
+    sample_grid_numpy,
+    sample_grid_torch,
+)
+from nkf_model.kernel.learned_kernel import _gated_trilinear
+from nkf_model.surface.evaluate import GRID_HALF
 
 
 def _cloud(n=300, seed=0):

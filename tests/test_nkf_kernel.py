@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from nkf_model import _numba_kernels as nk
-from nkf_model.engines import cpu_engine
-from nkf_model.kernel import homogeneous, ns_kernel, ns_kernel_torch, split_unit
-from nkf_model.learned_torch import fit_and_evaluate, kernel_matrix, spd_solve
+from nkf_model.kernel import _numba_kernels as nk
+from nkf_model.kernel.engines import cpu_engine
+from nkf_model.kernel.neural_spline import homogeneous, ns_kernel, ns_kernel_torch, split_unit
+from nkf_model.train.differentiable_fit import fit_and_evaluate, kernel_matrix, spd_solve
 
 
 def _homog(n, d, seed, scale=0.15):

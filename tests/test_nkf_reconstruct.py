@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from nkf_helpers import tiny_weights
+from nkf_model.pipeline.reconstruct import DEFAULT_METHOD
 from shapes import sphere_points
 
 import nkf_model
 from nkf_model.cli import main
 from nkf_model.errors import WeightsError
-from nkf_model.fileio import read_mesh
-from nkf_model.metrics import chamfer_l1, sample_surface
-from nkf_model.reconstruct import DEFAULT_METHOD
-from nkf_model.weights import has_default_weights
+from nkf_model.io.files import read_mesh
+from nkf_model.kernel.weights import has_default_weights
+from nkf_model.train.metrics import chamfer_l1, sample_surface
 
 
 def _closed_and_outward(m):
@@ -122,9 +122,9 @@ def test_feature_scale_multiplies_only_the_learned_features(tmp_path, const):
 
     from nkf_helpers import TINY
 
-    from nkf_model.augment import augment
-    from nkf_model.kernel import homogeneous, ns_kernel
-    from nkf_model.weights import load_weights
+    from nkf_model.fit.augment import augment
+    from nkf_model.kernel.neural_spline import homogeneous, ns_kernel
+    from nkf_model.kernel.weights import load_weights
 
     model = load_weights(tiny_weights(tmp_path / "w.safetensors", gate=0.3, config=replace(TINY, const_channel=const)))
     p, n = sphere_points(400, radius=0.4, seed=1)
@@ -150,8 +150,7 @@ def test_dense_clean_input_fades_the_learned_features(tmp_path):
     # Above the training sizes (NKF_TRAINED_POINTS) the learned features are kept in proportion to the
     # estimated noise: clean dense input gets (almost) none, noisy dense input all, small input all.
     from nkf_helpers import box_mesh
-
-    from nkf_model.reconstruct import NKF_TRAINED_POINTS
+    from nkf_model.pipeline.reconstruct import NKF_TRAINED_POINTS
 
     w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)
     v, f = box_mesh()

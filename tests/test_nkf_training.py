@@ -9,10 +9,10 @@ import pytest
 import torch
 from nkf_helpers import TINY, box_mesh, icosphere
 
-from nkf_model import metrics
-from nkf_model.features import FeatureNet
-from nkf_model.training import FitSpec, example_field, example_loss, field_iou, load_config
-from nkf_model.trainset import AugmentSpec, CacheSpec, make_example, samples_from_mesh, validation_example
+from nkf_model.kernel.feature_net import FeatureNet
+from nkf_model.train import metrics
+from nkf_model.train.examples import AugmentSpec, CacheSpec, make_example, samples_from_mesh, validation_example
+from nkf_model.train.kernel_training import FitSpec, example_field, example_loss, field_iou, load_config
 
 SMALL_CACHE = CacheSpec(n_surface=3000, n_volume=1024, n_near=1024)
 SMALL_AUG = AugmentSpec(n_min=120, n_max=200, n_mode=150, n_volume=256, n_near=256, n_surface=128)
@@ -135,9 +135,9 @@ def test_metrics_winding_agrees_for_the_test_meshes():
 
 def test_train_cli_stops_checkpoints_and_resumes(tmp_path):
     """`nkf train` on two corpus meshes: stop after 2 steps, resume to 4, and --stop-after 0."""
-    from nkf_model import corpus
     from nkf_model.cli import main
-    from nkf_model.weights import load_weights
+    from nkf_model.kernel.weights import load_weights
+    from nkf_model.train import corpus
 
     if not (corpus.corpus_dir() / "MANIFEST.csv").is_file():
         pytest.skip("the mesh corpus (../shared/data/meshes) is not beside this checkout")

@@ -10,8 +10,8 @@ import torch
 from nkf_helpers import TINY, tiny_net, tiny_weights
 
 from nkf_model.errors import MethodUnavailableError, NKFInputError, WeightsError
-from nkf_model.features import FeatureConfig
-from nkf_model.weights import DEFAULT_WEIGHTS, load_weights, read_weights, save_weights
+from nkf_model.kernel.feature_net import FeatureConfig
+from nkf_model.kernel.weights import DEFAULT_WEIGHTS, load_weights, read_weights, save_weights
 
 
 def test_save_and_load_are_bit_exact(tmp_path):

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 import nkf_model
-from nkf_model.augment import augment, default_eps
-from nkf_model.engines import cpu_engine
-from nkf_model.kernel import homogeneous
-from nkf_model.noise import NOISE_LAM_PER_VAR, estimate_noise, noise_lam
-from nkf_model.pou import fit_pou
+from nkf_model.fit.augment import augment, default_eps
+from nkf_model.fit.partition_of_unity import fit_pou
+from nkf_model.kernel.engines import cpu_engine
+from nkf_model.kernel.neural_spline import homogeneous
+from nkf_model.points.noise import NOISE_LAM_PER_VAR, estimate_noise, noise_lam
 
 
 def _sphere(n, noise, seed=0):
@@ -87,8 +87,7 @@ def test_reconstruct_reports_the_local_regularisation():
 
 def test_the_learned_kernel_scales_the_local_regularisation_to_its_magnitude(tmp_path):
     from nkf_helpers import tiny_weights
-
-    from nkf_model.reconstruct import NKF_NOISE_LAM_FACTOR
+    from nkf_model.pipeline.reconstruct import NKF_NOISE_LAM_FACTOR
 
     p, n = _sphere(8000, 0.005, seed=4)
     splines = nkf_model.reconstruct(p, n, method="splines", resolution=48).stats["pou"]["patch_lam"]

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from shapes import sphere_points, torus_distance, torus_points
 
 import nkf_model
-from nkf_model.mesh import Mesh
+from nkf_model.surface.mesh import Mesh
 
 
 def edge_use_counts(faces):
@@ -169,9 +169,9 @@ def test_torch_engine_agrees_with_numba(sphere500):
     Stated tolerance: vertex positions within 1e-6 of the unit box."""
     import sys
 
-    from nkf_model.engines import TorchEngine
+    from nkf_model.kernel.engines import TorchEngine
 
-    rec = sys.modules["nkf_model.reconstruct"]
+    rec = sys.modules["nkf_model.pipeline.reconstruct"]
 
     p, n = sphere500
     a = nkf_model.reconstruct(p, n, resolution=40, device="cpu")
@@ -218,9 +218,9 @@ def test_auto_device_keeps_the_partition_of_unity_on_the_cpu(monkeypatch):
     patch by patch); smaller inputs stay on the GPU engine. A CPU-backed engine stands in for CUDA."""
     import sys
 
-    from nkf_model.engines import TorchEngine
+    from nkf_model.kernel.engines import TorchEngine
 
-    rec = sys.modules["nkf_model.reconstruct"]
+    rec = sys.modules["nkf_model.pipeline.reconstruct"]
 
     class FakeCuda(TorchEngine):
         def __init__(self):

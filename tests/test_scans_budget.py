@@ -10,7 +10,7 @@ import pytest
 from shapes import sphere_points
 
 import nkf_model
-from nkf_model import budget
+from nkf_model.pipeline import budget
 
 
 def test_estimate_is_cheap_and_grows_with_the_job():

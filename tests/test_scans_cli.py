@@ -9,7 +9,7 @@ from scan_shapes import hemisphere_points
 from shapes import sphere_points
 
 from nkf_model.cli import main
-from nkf_model.fileio import read_mesh, write_point_cloud
+from nkf_model.io.files import read_mesh, write_point_cloud
 
 
 def run(args, capsys):

@@ -8,8 +8,8 @@ from plyfile import PlyData
 from shapes import sphere_points
 
 import nkf_model
-from nkf_model.colors import as_rgb8, transfer_colors
-from nkf_model.fileio import read_point_cloud, write_mesh, write_point_cloud
+from nkf_model.io.files import read_point_cloud, write_mesh, write_point_cloud
+from nkf_model.surface.colors import as_rgb8, transfer_colors
 
 
 @pytest.fixture(scope="module")

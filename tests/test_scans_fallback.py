@@ -13,11 +13,11 @@ import pytest
 from shapes import sphere_points
 
 import nkf_model
-from nkf_model.engines import Engine, cpu_engine
-from nkf_model.fallback import DeviceWarning, run_with_cpu_fallback
+from nkf_model.kernel.engines import Engine, cpu_engine
+from nkf_model.pipeline.device_fallback import DeviceWarning, run_with_cpu_fallback
 
 torch = pytest.importorskip("torch")
-rec = importlib.import_module("nkf_model.reconstruct")  # the module, not the function
+rec = importlib.import_module("nkf_model.pipeline.reconstruct")  # the module, not the function
 
 
 class OutOfMemoryEngine(Engine):

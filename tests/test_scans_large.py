@@ -8,7 +8,7 @@ import numpy as np
 from shapes import torus_distance, torus_points
 
 import nkf_model
-from nkf_model.fileio import read_point_cloud, write_point_cloud
+from nkf_model.io.files import read_point_cloud, write_point_cloud
 
 
 def test_million_points_from_ply(tmp_path):

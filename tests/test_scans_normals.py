@@ -9,7 +9,7 @@ from shapes import sphere_points
 
 import nkf_model
 from nkf_model.errors import InvalidParameterError
-from nkf_model.normals import estimate_normals, pca_normals
+from nkf_model.normals.estimate import estimate_normals, pca_normals
 
 
 def agreement(estimated, true):
@@ -67,7 +67,7 @@ def test_layer_votes_point_away_from_the_other_face_of_a_thin_plate():
     # A 0.006 slab, under a point spacing thick: each face's other face lies on one side.
     from scipy.spatial import cKDTree
 
-    from nkf_model.normals import layer_votes, median_spacing
+    from nkf_model.normals.estimate import layer_votes, median_spacing
 
     p, n = box_points(4000, size=(1.0, 1.0, 0.006), seed=2)
     tree = cKDTree(p)
@@ -99,7 +99,7 @@ def test_faces_hidden_inside_another_part_follow_the_winding_number(refined, mon
     # faces at a T, where the neighbour graph guesses. The winding number's field of the rest
     # orients them (0.70 of them right without that step). With ``refined``, only that many
     # points are refined and their field decides the rest (the path of large inputs).
-    from nkf_model import normals
+    from nkf_model.normals import estimate as normals
 
     if refined:
         monkeypatch.setattr(normals, "WINDING_POINTS", refined)
@@ -120,7 +120,7 @@ def test_a_curved_sheet_is_no_layer_of_itself():
     # points for layers. Offsets explained by the bending (t * tan(theta / 2)) do not count.
     from scipy.spatial import cKDTree
 
-    from nkf_model.normals import layer_sides, median_spacing
+    from nkf_model.normals.estimate import layer_sides, median_spacing
 
     p, _ = sphere_points(300, seed=1)
     tree = cKDTree(p)
@@ -200,7 +200,7 @@ def test_global_sign_fit_outvotes_a_wrong_branch():
     # points: dense enough that most neighbours on the curved surface are confident edges).
     from scipy.spatial import cKDTree
 
-    from nkf_model.normals import _graph, _harmonic_signs
+    from nkf_model.normals.estimate import _graph, _harmonic_signs
 
     p, n = sphere_points(6000, seed=5)
     e, _ = pca_normals(p, 16)

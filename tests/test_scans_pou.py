@@ -4,17 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from nkf_model.pipeline.reconstruct import choose_solver
 from scan_shapes import box_points
 from shapes import sphere_points, torus_distance, torus_points
 
 import nkf_model
-from nkf_model.augment import augment, default_eps
-from nkf_model.engines import TorchEngine, cpu_engine
-from nkf_model.kernel import homogeneous
-from nkf_model.normalise import Normalisation
-from nkf_model.pou import fit_pou, patch_spacing
-from nkf_model.reconstruct import choose_solver
-from nkf_model.reduce import voxel_for_count, voxel_reduce
+from nkf_model.fit.augment import augment, default_eps
+from nkf_model.fit.partition_of_unity import fit_pou, patch_spacing
+from nkf_model.kernel.engines import TorchEngine, cpu_engine
+from nkf_model.kernel.neural_spline import homogeneous
+from nkf_model.points.normalise import Normalisation
+from nkf_model.points.voxel_reduce import voxel_for_count, voxel_reduce
 
 
 @pytest.fixture(scope="module")
@@ -122,8 +122,8 @@ def test_far_field_keeps_the_coarse_sign_next_to_the_data():
     of quaternius__Donut the override there cost F-score 0.946 against 1.000, docs/scans.md)."""
     from scipy.spatial import cKDTree
 
-    from nkf_model import pou
-    from nkf_model.winding import FarField, follow_winding, winding_scale
+    from nkf_model.fit import partition_of_unity as pou
+    from nkf_model.points.winding import FarField, follow_winding, winding_scale
 
     p, n = torus_points(20_000, seed=3)
     x = Normalisation.fit(p).to_unit(p) + np.random.default_rng(0).normal(0.0, 0.004, (len(p), 3))

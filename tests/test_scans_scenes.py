@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nkf_model import scenes
+from benchmarks import scenes
 
 
 @pytest.fixture(scope="module")

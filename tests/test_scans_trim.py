@@ -10,7 +10,7 @@ from shapes import sphere_points
 
 import nkf_model
 from nkf_model.errors import InvalidParameterError
-from nkf_model.trim import clean_scan_mesh, piece_labels, remove_small_pieces
+from nkf_model.surface.trim import clean_scan_mesh, piece_labels, remove_small_pieces
 
 
 @pytest.fixture(scope="module")

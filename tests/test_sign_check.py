@@ -8,10 +8,10 @@ import pytest
 from scan_shapes import box_points, cube_mesh, open_box_points
 from shapes import sphere_points
 
-from nkf_model import sign_check
 from nkf_model.errors import WeightsError
-from nkf_model.normals import _estimate, estimate_normals, orient_normals, pca_normals
-from nkf_model.sign_check import FEATURES, SignCheck, flip_wrong, point_features
+from nkf_model.normals import sign_check
+from nkf_model.normals.estimate import _estimate, estimate_normals, orient_normals, pca_normals
+from nkf_model.normals.sign_check import FEATURES, SignCheck, flip_wrong, point_features
 
 
 def oriented_state(p):
@@ -119,7 +119,7 @@ def test_large_clouds_skip_the_check(monkeypatch):
 
 
 def test_training_labels_turn_meshes_wound_inside_out_around():
-    from nkf_model.train_sign_check import holdout_split, outward_samples
+    from nkf_model.train.sign_check_training import holdout_split, outward_samples
 
     # A unit cube wound outward, and the same cube wound inside out: outward labels from both.
     v, f = cube_mesh(0.5)

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from shapes import sphere_points
 
-from nkf_model.augment import augment
-from nkf_model.engines import cpu_engine
 from nkf_model.errors import Cancelled
-from nkf_model.kernel import homogeneous, ns_kernel
-from nkf_model.normalise import Normalisation
-from nkf_model.solve import KernelFunction, solve_dense, solve_falkon
+from nkf_model.fit.augment import augment
+from nkf_model.fit.solve import KernelFunction, solve_dense, solve_falkon
+from nkf_model.kernel.engines import cpu_engine
+from nkf_model.kernel.neural_spline import homogeneous, ns_kernel
+from nkf_model.points.normalise import Normalisation
 
 
 def constraints(n=300, eps=0.01, seed=0):
@@ -93,8 +93,8 @@ def test_solves_stop_when_cancelled():
 
 @pytest.mark.parametrize("features", [0, 8, 2])  # 4-D, 12-D and generic rows
 def test_fused_gram_lower_triangle_matches_the_kernel_matrix(features):
-    from nkf_model.engines import TorchEngine
-    from nkf_model.kernel import split_unit
+    from nkf_model.kernel.engines import TorchEngine
+    from nkf_model.kernel.neural_spline import split_unit
 
     rng = np.random.default_rng(features)
     x = rng.uniform(-0.5, 0.5, size=(301, 3))

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nkf_model.augment import augment, default_eps
 from nkf_model.errors import Cancelled
-from nkf_model.evaluate import evaluate_dense, evaluate_sparse, levels, node_positions
-from nkf_model.mesh import triangulate, vertex_normals
-from nkf_model.normalise import Normalisation
-from nkf_model.sampling import farthest_point_sample
+from nkf_model.fit.augment import augment, default_eps
+from nkf_model.points.farthest_point import farthest_point_sample
+from nkf_model.points.normalise import Normalisation
+from nkf_model.surface.evaluate import evaluate_dense, evaluate_sparse, levels, node_positions
+from nkf_model.surface.mesh import triangulate, vertex_normals
 
 
 def test_normalisation_round_trip_far_from_the_origin():

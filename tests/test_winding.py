@@ -7,13 +7,13 @@ import pytest
 from scan_shapes import box_points
 from shapes import sphere_points
 
-from nkf_model import metrics
-from nkf_model.augment import augment, default_eps
-from nkf_model.engines import cpu_engine
-from nkf_model.kernel import homogeneous
-from nkf_model.normalise import Normalisation
-from nkf_model.pou import fit_pou
-from nkf_model.winding import WindingGradient, far_field, point_areas, winding_number, winding_scale
+from nkf_model.fit.augment import augment, default_eps
+from nkf_model.fit.partition_of_unity import fit_pou
+from nkf_model.kernel.engines import cpu_engine
+from nkf_model.kernel.neural_spline import homogeneous
+from nkf_model.points.normalise import Normalisation
+from nkf_model.points.winding import WindingGradient, far_field, point_areas, winding_number, winding_scale
+from nkf_model.train import metrics
 
 
 def test_sphere_inside_one_outside_zero():
@@ -97,7 +97,7 @@ def test_winding_scale_matches_the_fit_where_the_signs_agree():
 def test_far_field_sign_of_a_thin_corpus_model():
     """A manta ray of 10,000 points: the coarse spline alone put spurious inside regions far from it
     (IoU 0.73); with the winding number's sign the field's IoU is above 0.9."""
-    from nkf_model import corpus
+    from nkf_model.train import corpus
 
     if not (corpus.corpus_dir() / "MANIFEST.csv").is_file():
         pytest.skip("the mesh corpus (../shared/data/meshes) is not beside this checkout")
@@ -114,7 +114,7 @@ def test_far_field_sign_of_a_thin_corpus_model():
 
 
 def test_blended_field_keeps_the_fit_near_the_data_and_the_winding_sign_far_away():
-    from nkf_model.winding import BlendedField
+    from nkf_model.points.winding import BlendedField
 
     p, n = sphere_points(2000, radius=0.3, seed=6)
 
@@ -135,7 +135,7 @@ def test_blended_field_keeps_the_fit_near_the_data_and_the_winding_sign_far_away
 
 
 def test_follow_winding_keeps_the_fit_where_the_signs_agree():
-    from nkf_model.winding import follow_winding
+    from nkf_model.points.winding import follow_winding
 
     fitted = np.array([2.0, -1.0, 3.0, -4.0])
     w = np.array([0.0, 1.0, 1.0, 0.0])  # agrees at 0 and 1
@@ -145,7 +145,7 @@ def test_follow_winding_keeps_the_fit_where_the_signs_agree():
 def test_near_cells_never_claims_a_point_farther_than_the_radius():
     from scipy.spatial import cKDTree
 
-    from nkf_model.winding import NearCells
+    from nkf_model.points.winding import NearCells
 
     rng = np.random.default_rng(9)
     p = sphere_points(1000, radius=0.4, seed=10)[0]

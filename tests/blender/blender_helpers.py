@@ -34,7 +34,7 @@ def fibonacci_sphere(n: int, radius: float = 1.0, center=(0.0, 0.0, 0.0)):
 def write_ply(path: Path, points, normals=None, colors=None) -> Path:
     """A binary PLY point cloud: x y z, plus nx ny nz when ``normals`` is given, plus red green blue
     (uchar) when ``colors`` (N, 3) uint8 is given."""
-    from nkf_model.fileio import write_point_cloud
+    from nkf_model.io.files import write_point_cloud
 
     return write_point_cloud(path, points, normals, colors)
 

@@ -27,7 +27,7 @@ def test_main_job_writes_blend_mesh_and_render(tmp_path, extension_zip, bpy_modu
         assert (out / name).stat().st_size > 0, name
     assert (out / "blender-user" / "extensions" / "user_default" / "nkf_blender" / "__init__.py").is_file()
 
-    from nkf_model.fileio import read_mesh
+    from nkf_model.io.files import read_mesh
 
     v, f = read_mesh(out / "sample_nkf_mesh.ply")
     r = np.linalg.norm(v - [0.0, 0.0, 1.0], axis=1)

@@ -56,7 +56,7 @@ def test_operator_reconstructs_imported_ply_sphere(scene, bpy_module, sphere_ply
     d_src_to_mesh, _ = cKDTree(world_vertices(new)).query(pts_world)
     assert d_src_to_mesh.max() < 0.05 * RADIUS
     # Chamfer-L1 by the metrics module's protocol: 100k surface samples each side, unit box units.
-    from nkf_model.metrics import chamfer_l1, sample_surface
+    from nkf_model.train.metrics import chamfer_l1, sample_surface
 
     faces = np.empty(len(me.polygons) * 3, dtype=np.int32)
     me.attributes[".corner_vert"].data.foreach_get("value", faces)

@@ -54,7 +54,7 @@ def budget_pref(addon, bpy_module):
 
 
 def test_scan_defaults_are_nkf_models(addon):
-    from nkf_model import trim
+    from nkf_model.surface import trim
 
     job = ext("job")
     assert (job.SCAN_TRIM, job.SCAN_MIN_PIECE) == (trim.SCAN_TRIM, trim.SCAN_MIN_PIECE)

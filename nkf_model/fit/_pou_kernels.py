@@ -1,0 +1,169 @@
+"""Compiled loops for the partition-of-unity solver (see :mod:`nkf_model.fit.partition_of_unity`).
+
+Patches sit at the nodes of a regular grid with spacing ``h`` starting at ``lo`` (``dims`` nodes per
+axis, flat index ``(i * dims + j) * dims + k``). A point in the cell with lower corner node
+``(i, j, k)`` and fractional position ``t`` in it has weight ``s(1 - t)`` or ``s(t)`` per axis
+towards the cell's 8 corner patches, with ``s(u) = 3u^2 - 2u^3``; since ``s(u) + s(1 - u) = 1`` the
+weights sum to one everywhere (a C1 partition of unity).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from ..kernel._numba_kernels import _g, _sum4
+
+_OPTS = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
+
+
+@nb.njit(inline="always")
+def _smooth(u):
+    return u * u * (3.0 - 2.0 * u)
+
+
+@nb.njit(inline="always")
+def _cell(x0, x1, x2, lo, h, dims):
+    """Lower corner node (ix, iy, iz) of the grid cell that holds (x0, x1, x2), clamped to the grid,
+    and the fractional position (tx, ty, tz) in it, each in [0, 1]."""
+    fx = (x0 - lo) / h
+    fy = (x1 - lo) / h
+    fz = (x2 - lo) / h
+    ix = min(max(int(math.floor(fx)), 0), dims - 2)
+    iy = min(max(int(math.floor(fy)), 0), dims - 2)
+    iz = min(max(int(math.floor(fz)), 0), dims - 2)
+    return ix, iy, iz, min(max(fx - ix, 0.0), 1.0), min(max(fy - iy, 0.0), 1.0), min(max(fz - iz, 0.0), 1.0)
+
+
+@nb.njit(**_OPTS)
+def gram_general(u, r, diag):  # pragma: no cover - compiled
+    """Kernel matrix ``r_i r_j g(|u_i - u_j|^2) / pi`` (n, n) of unit vectors ``u`` (n, D), plus
+    ``diag`` on the diagonal. Serial: the caller runs several patches in parallel threads."""
+    n, d = u.shape
+    G = np.empty((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(d):
+                t = u[i, k] - u[j, k]
+                s += t * t
+            v = _g(s) * r[i] * r[j] / math.pi
+            G[i, j] = v
+            G[j, i] = v
+        G[i, i] += diag
+    return G
+
+
+@nb.njit(inline="always")
+def _trilinear(grid, lo, step, x0, x1, x2):
+    n = grid.shape[0] - 1
+    f0 = min(max((x0 - lo) / step, 0.0), n - 1e-9)
+    f1 = min(max((x1 - lo) / step, 0.0), n - 1e-9)
+    f2 = min(max((x2 - lo) / step, 0.0), n - 1e-9)
+    i = int(f0)
+    j = int(f1)
+    k = int(f2)
+    a = f0 - i
+    b = f1 - j
+    c = f2 - k
+    return (
+        (1 - a) * ((1 - b) * ((1 - c) * grid[i, j, k] + c * grid[i, j, k + 1])
+                   + b * ((1 - c) * grid[i, j + 1, k] + c * grid[i, j + 1, k + 1]))
+        + a * ((1 - b) * ((1 - c) * grid[i + 1, j, k] + c * grid[i + 1, j, k + 1])
+               + b * ((1 - c) * grid[i + 1, j + 1, k] + c * grid[i + 1, j + 1, k + 1]))
+    )
+
+
+@nb.njit(parallel=True, **_OPTS)
+def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step, acute):  # pragma: no cover
+    """Blended value ``sum_p w_p(x) g_p(x)`` at each query.
+
+    Parameters
+    ----------
+    x : (Nq, 3) float64
+        Unit-box positions (they pick the patches and weights).
+    qu, qr : (Nq, D) float64, (Nq,) float64
+        Unit homogeneous vectors of the queries and their norms.
+    lo, h : float
+        Grid origin and spacing; ``dims`` nodes per axis.
+    start, count : (dims^3,) int64
+        Slice of each patch's centres in ``cu`` / ``beta``; ``count == 0`` means "no local fit",
+        and ``f0`` stands in for it.
+    cu : (D, C) float64
+        Unit centres of all patches, by columns.
+    beta : (C,) float64
+        ``alpha_j * |c_j|`` of each centre.
+    f0 : (G, G, G) float64
+        The coarse global fit sampled on a regular grid from ``f0_lo`` with spacing ``f0_step``;
+        interpolated trilinearly where a corner patch has no fit.
+    acute : bool
+        Every query and centre is a 4-D ``[x : 1]`` with ``|x| < 1`` (so the faster branch-free
+        angle term of :func:`nkf_model.kernel._numba_kernels._g_acute` applies).
+    """
+    nq = x.shape[0]
+    d = qu.shape[1]
+    out = np.empty(nq)
+    for i in nb.prange(nq):
+        ix, iy, iz, tx, ty, tz = _cell(x[i, 0], x[i, 1], x[i, 2], lo, h, dims)
+        total = 0.0
+        for a in range(2):
+            wx = _smooth(tx) if a == 1 else _smooth(1.0 - tx)
+            for b in range(2):
+                wy = _smooth(ty) if b == 1 else _smooth(1.0 - ty)
+                for c in range(2):
+                    wz = _smooth(tz) if c == 1 else _smooth(1.0 - tz)
+                    w = wx * wy * wz
+                    if w == 0.0:
+                        continue
+                    p = ((ix + a) * dims + (iy + b)) * dims + (iz + c)
+                    m = count[p]
+                    if m == 0:
+                        total += w * _trilinear(f0, f0_lo, f0_step, x[i, 0], x[i, 1], x[i, 2])
+                        continue
+                    s0 = start[p]
+                    acc = 0.0
+                    if d == 4:
+                        acc = _sum4(qu[i, 0], qu[i, 1], qu[i, 2], qu[i, 3], cu[0], cu[1], cu[2], cu[3], beta,
+                                    s0, s0 + m, acute)
+                    else:
+                        for j in range(s0, s0 + m):
+                            s = 0.0
+                            for k in range(d):
+                                t = qu[i, k] - cu[k, j]
+                                s += t * t
+                            acc += beta[j] * _g(s)
+                    total += w * acc * qr[i] / math.pi
+        out[i] = total
+    return out
+
+
+@nb.njit(**_OPTS)
+def corner_weights(x, lo, h, dims):  # pragma: no cover - compiled
+    """Patch indices (N, 8) int64 and weights (N, 8) float64 of each point's 8 corner patches."""
+    n = x.shape[0]
+    idx = np.empty((n, 8), dtype=np.int64)
+    wts = np.empty((n, 8))
+    for i in range(n):
+        ix, iy, iz, tx, ty, tz = _cell(x[i, 0], x[i, 1], x[i, 2], lo, h, dims)
+        q = 0
+        for a in range(2):
+            wx = _smooth(tx) if a == 1 else _smooth(1.0 - tx)
+            for b in range(2):
+                wy = _smooth(ty) if b == 1 else _smooth(1.0 - ty)
+                for c in range(2):
+                    wz = _smooth(tz) if c == 1 else _smooth(1.0 - tz)
+                    idx[i, q] = ((ix + a) * dims + (iy + b)) * dims + (iz + c)
+                    wts[i, q] = wx * wy * wz
+                    q += 1
+    return idx, wts
+
+
+@nb.njit(parallel=True, **_OPTS)
+def interpolate(grid, lo, step, x):  # pragma: no cover - compiled
+    """Trilinear interpolation (N,) of a node grid (G, G, G) at points (N, 3)."""
+    out = np.empty(x.shape[0])
+    for i in nb.prange(x.shape[0]):
+        out[i] = _trilinear(grid, lo, step, x[i, 0], x[i, 1], x[i, 2])
+    return out

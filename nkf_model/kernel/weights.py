@@ -1,0 +1,185 @@
+"""Weights of the learned kernel: saving, loading and checking safetensors files.
+
+A weights file is a safetensors file (never a pickle) holding the feature network's tensors
+(float32) and, in its metadata, everything needed to rebuild and check the network:
+
+* ``format`` = ``"nkf-weights"`` and ``format_version``;
+* ``config``: the :class:`~nkf_model.kernel.feature_net.FeatureConfig` as JSON;
+* ``lam``: the regularisation per constraint the kernel was trained with (the default for
+  ``method="nkf"``);
+* ``training``: a JSON summary of the run that made it (free form, shown in the model card).
+
+Every problem with a file raises :class:`~nkf_model.errors.WeightsError` (an ``NKFInputError``)
+with one sentence that names the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from ..errors import DefaultWeightsMissingError, WeightsError
+
+FORMAT = "nkf-weights"
+FORMAT_VERSION = "1"
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "nkf_default.safetensors"
+
+_CACHE: dict = {}
+
+
+def default_weights_path() -> Path:
+    """Where the package's default weights live (they may be absent in a development checkout)."""
+    return DEFAULT_WEIGHTS
+
+
+def has_default_weights() -> bool:
+    """True when the package ships default weights for ``method="nkf"``."""
+    return DEFAULT_WEIGHTS.is_file()
+
+
+def save_weights(path, net, *, lam: float, training: dict | None = None) -> Path:
+    """Write ``net`` (a :class:`~nkf_model.kernel.feature_net.FeatureNet`) to ``path`` as safetensors.
+
+    The file is written to a temporary name and renamed, so a crash never leaves half a file.
+    """
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors = {k: v.detach().to("cpu").contiguous().clone() for k, v in net.state_dict().items()}
+    meta = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "config": json.dumps(net.config.to_dict(), sort_keys=True),
+        "lam": repr(float(lam)),
+        "training": json.dumps(training or {}, sort_keys=True),
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(tensors, str(tmp), metadata=meta)
+    tmp.replace(path)
+    return path
+
+
+def read_safetensors(path, framework: str = "numpy"):
+    """Tensors (as ``framework`` arrays: ``"numpy"`` or ``"pt"``) and metadata of a safetensors
+    file: ``(dict, dict)``. Every problem raises :class:`~nkf_model.errors.WeightsError` naming
+    the file."""
+    from safetensors import safe_open
+
+    path = Path(path)
+    if not path.exists():
+        raise WeightsError(f"weights file {path} does not exist")
+    if not path.is_file():
+        raise WeightsError(f"weights path {path} is not a file")
+    try:
+        with safe_open(str(path), framework=framework) as fh:
+            meta = fh.metadata() or {}
+            tensors = {k: fh.get_tensor(k) for k in fh.keys()}
+    except PermissionError:
+        raise WeightsError(f"weights file {path} cannot be read (permission denied)") from None
+    except Exception as exc:  # safetensors raises its own error types for every kind of damage
+        raise WeightsError(
+            f"weights file {path} is not a valid safetensors file (truncated or corrupt?): {exc}"
+        ) from None
+    return tensors, meta
+
+
+def read_weights(path):
+    """Tensors and metadata of a weights file, checked; returns ``(tensors, meta, config)``."""
+    from .feature_net import FeatureConfig
+
+    path = Path(path)
+    tensors, meta = read_safetensors(path, framework="pt")
+    if meta.get("format") != FORMAT:
+        raise WeightsError(f"weights file {path} is a safetensors file but not NKF weights (no '{FORMAT}' tag)")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise WeightsError(
+            f"weights file {path} has format version {meta.get('format_version')!r}; "
+            f"this version of nkf_model reads version {FORMAT_VERSION}"
+        )
+    try:
+        config = FeatureConfig.from_dict(json.loads(meta["config"]))
+        lam = float(meta["lam"])
+    except (KeyError, ValueError, TypeError) as exc:
+        raise WeightsError(f"weights file {path} has an unreadable model configuration: {exc}") from None
+    if not (math.isfinite(lam) and lam >= 0):
+        raise WeightsError(f"weights file {path} stores an invalid lambda {meta['lam']!r}")
+    return tensors, meta, config
+
+
+def load_weights(path=None):
+    """Load a :class:`~nkf_model.kernel.learned_kernel.LearnedKernel` from ``path`` (default: the shipped file).
+
+    Raises :class:`~nkf_model.errors.WeightsError` if the file is missing, not safetensors,
+    truncated, or does not match the network its metadata describes.
+    """
+    import torch
+
+    from .feature_net import FeatureNet
+    from .learned_kernel import LearnedKernel
+
+    path = Path(path) if path is not None else DEFAULT_WEIGHTS
+    if path is DEFAULT_WEIGHTS and not path.is_file():
+        raise DefaultWeightsMissingError(
+            f"this installation has no default weights for method 'nkf' ({path}); train them with "
+            "'nkf train' and pass weights=PATH (--weights PATH), or use method 'splines'"
+        )
+    key = None
+    try:
+        st = path.stat()
+        key = (str(path.resolve()), st.st_mtime_ns, st.st_size)
+    except OSError:
+        pass
+    if key is not None and key in _CACHE:
+        return _CACHE[key]
+    tensors, meta, config = read_weights(path)
+    try:
+        net = FeatureNet(config)
+    except ValueError as exc:
+        raise WeightsError(f"weights file {path} describes an invalid network: {exc}") from None
+    expected = net.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    extra = sorted(set(tensors) - set(expected))
+    if missing or extra:
+        raise WeightsError(
+            f"weights file {path} does not match its stored configuration "
+            f"({len(missing)} tensors missing, {len(extra)} unexpected"
+            + (f", e.g. missing {missing[0]}" if missing else f", e.g. unexpected {extra[0]}")
+            + ")"
+        )
+    for k, t in expected.items():
+        if tuple(tensors[k].shape) != tuple(t.shape):
+            raise WeightsError(
+                f"weights file {path} does not match its stored configuration: tensor {k} has shape "
+                f"{tuple(tensors[k].shape)}, the network needs {tuple(t.shape)}"
+            )
+        if tensors[k].dtype != t.dtype:
+            raise WeightsError(f"weights file {path}: tensor {k} is {tensors[k].dtype}, expected {t.dtype}")
+        if t.is_floating_point() and not bool(torch.isfinite(tensors[k]).all()):
+            raise WeightsError(f"weights file {path}: tensor {k} holds NaN or infinite values (corrupt)")
+    net.load_state_dict(tensors, strict=True)
+    meta = dict(meta)
+    meta["lam_value"] = float(meta["lam"])
+    meta["path"] = str(path)
+    model = LearnedKernel(net, meta)
+    if key is not None:
+        _CACHE[key] = model
+    return model
+
+
+def method_available(method: str) -> tuple[bool, str]:
+    """``(available, reason)`` for a method of :func:`nkf_model.reconstruct` in this installation.
+
+    ``"splines"`` always is; ``"nkf"`` is when the shipped default weights load (``reason`` then
+    says why not, in one sentence).
+    """
+    if method == "splines":
+        return True, ""
+    if method != "nkf":
+        return False, f"unknown method {method!r}"
+    try:
+        load_weights()
+    except WeightsError as exc:
+        return False, str(exc)
+    return True, ""

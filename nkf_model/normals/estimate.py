@@ -1,0 +1,860 @@
+"""Normals for point clouds that have none: PCA estimation and consistent orientation.
+
+Two steps, both on the CPU with SciPy:
+
+1. :func:`pca_normals`: the normal of each point is the direction of least variance of its ``k``
+   nearest neighbours (a KD-tree query and a batched 3x3 eigen-decomposition), refitted twice with
+   weights ``exp(-(r / sigma)^2)`` of each neighbour's distance ``r`` to the current plane, starting
+   from the 7 nearest: on a plate thinner than the neighbourhood, plain PCA mixes both faces into a
+   meaningless normal, the reweighted fit keeps to the point's own face. Its sign is arbitrary.
+2. :func:`orient_normals`: consistent signs, in five steps.
+
+   a. Seeds from views. Every point is drawn as a disc in its tangent plane into depth buffers: 64
+      orthographic views from all around (``"outward"``, closed objects), from the upper half
+      (``"up"``, terrain), or the six cube-map faces of each scanner position (``"viewpoint"``).
+      A point seen face-on votes for the side of its normal that faces the viewer; points whose
+      votes agree (at least half of the weight, seen in about 3 views or more; one clear view
+      for scanners) are seeds. Points seen from almost nowhere (inside a cup, between touching
+      parts) are not.
+      Thin walls: where the two faces of a wall are closer than the views' depth tolerance, the
+      views see both; a point whose neighbours include another layer on the viewer's side
+      (:func:`layer_sides`) is hidden from that view, so the inner face of a thin-walled cup is
+      not seeded with its outer face's sign.
+      Thin parts: where the two faces of a plate are closer than the views' depth tolerance, a
+      view sees both and its votes cancel. There a point whose nearby parallel points all lie on
+      one side of its plane (the plate's other face) is seeded with the normal pointing away from
+      them (:func:`layer_votes`); that holds for a solid plate and not for the facing sides of a
+      narrow gap, so it is used only on connected layer regions whose view-seeded points agree
+      with it (:func:`_layer_seeds`), and only in the global fit of step c, not as a seed of b.
+   b. Propagation from the seeds along a minimum spanning tree of the neighbour graph (Hoppe et
+      al., SIGGRAPH 1992; the seeds hang from a virtual root). Edge ``(i, j)`` with unit offset
+      ``d`` costs ``1 - |n_i . n_j| + min(a, 2 - a)``, ``a = |n_i . d| + |n_j . d|``: cheap both
+      along the surface (``a`` near 0, the normals agree) and straight across a thin plate or a
+      narrow gap (``a`` near 2, the outward normals point opposite ways; Hoppe's rule would make
+      them agree and fail there); at sharp edges (normals over 60 degrees apart) the edge is taken
+      as convex.
+   c. Clean-up: an undecided piece (joined by confident edges) flips as a whole when its edges to
+      decided points vote against it; then all confident edges and seeds vote at once in one
+      sparse least-squares fit of real-valued signs (:func:`_harmonic_signs`, a signed harmonic
+      propagation: one wrong edge no longer flips a whole branch of the tree); then single points
+      flip where their neighbours and views clearly disagree with them (iterated conditional
+      modes).
+   d. Closed objects (``"outward"``): the winding number of the oriented cloud (:func:`_winding_signs`).
+      Its gradient at a point, from the rest of the surface, points inward; points the views did
+      not seed take the sign that agrees with it, a few rounds over. That reaches faces hidden
+      inside other parts and behind lids, which the graph decides poorly.
+   e. Closed objects of at most 20,000 points: a small network trained on the corpus's ``train``
+      split reads every step's evidence per point and flips the signs it finds still wrong
+      (:mod:`nkf_model.normals.sign_check`).
+
+Noise: the noise level of the cloud (the flattest quarter's plane-fit residual) widens the depth
+tolerance of the views and keeps offsets along the normals that are within the noise from being
+read as "across a thin plate". Large clouds are voted on a random subset of 40,000 points.
+
+All positions are in the caller's units; the functions are scale-free (neighbour offsets are
+normalised).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+from scipy.spatial import cKDTree
+
+from ..errors import InvalidParameterError
+
+DEFAULT_K = 16  # neighbours for the PCA fit
+DEFAULT_GRAPH_K = 10  # neighbours per point in the orientation graph
+INITIAL_K = 7  # neighbours of the first plane fit
+REWEIGHTS = 2  # refits with weights that fade off the plane
+SIGMA = 1.0  # width of that fade, in mean distances to the 4 nearest neighbours
+ORIENTATIONS = ("outward", "up", "viewpoint")
+_CHUNK = 25_000  # points per KD-tree query / eigen-decomposition batch (about 0.2 s)
+
+Check = Optional[Callable[[], None]]
+
+
+@dataclass
+class OrientationInfo:
+    """What :func:`orient_normals` did.
+
+    Attributes
+    ----------
+    orientation : str
+        The hint used: ``"outward"``, ``"up"`` or ``"viewpoint"``.
+    pieces : int
+        Connected pieces of the neighbour graph (each oriented on its own).
+    seeded : int
+        Points whose sign the views decided (the rest was propagated from them).
+    spacing : float
+        Median nearest-neighbour distance of the points, in their units.
+    learned_check : bool
+        Whether the learned sign check ran (:mod:`nkf_model.normals.sign_check`: ``"outward"``, at most
+        :data:`~nkf_model.normals.sign_check.MAX_POINTS` points, ``safetensors`` installed).
+    learned_flips : int
+        Points it flipped.
+    """
+
+    orientation: str
+    pieces: int
+    seeded: int = 0
+    spacing: float = 0.0
+    learned_check: bool = False
+    learned_flips: int = 0
+
+
+def check_viewpoints(viewpoints) -> Optional[np.ndarray]:
+    """``None``, or viewpoints as a (K, 3) float64 array; raises :class:`InvalidParameterError`."""
+    if viewpoints is None:
+        return None
+    try:
+        v = np.asarray(viewpoints, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidParameterError(f"viewpoints must be numbers (x, y, z), got {viewpoints!r}") from None
+    if v.ndim == 1:
+        v = v[None, :]
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise InvalidParameterError(f"viewpoints must have shape (3,) or (K, 3), got {np.shape(viewpoints)}")
+    if not np.isfinite(v).all():
+        raise InvalidParameterError("viewpoints must be finite")
+    return v
+
+
+def check_orientation(orientation, viewpoints) -> str:
+    """The orientation rule to use: ``orientation`` if given, else ``"viewpoint"`` when viewpoints
+    are given, else ``"outward"``."""
+    if orientation is None:
+        return "viewpoint" if viewpoints is not None else "outward"
+    if orientation not in ORIENTATIONS:
+        raise InvalidParameterError(f"orientation must be one of {', '.join(ORIENTATIONS)}; got {orientation!r}")
+    if orientation == "viewpoint" and viewpoints is None:
+        raise InvalidParameterError("orientation 'viewpoint' needs the scanner positions: pass viewpoints")
+    return orientation
+
+
+def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] = None, check: Check = None):
+    """Unoriented unit normals by PCA over the ``k`` nearest neighbours.
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+        Positions (any units).
+    k : int
+        Neighbours per point, the point itself included (clipped to N).
+    tree : cKDTree, optional
+        A tree already built on ``points``.
+
+    Returns
+    -------
+    normals : (N, 3) float64
+        Unit vectors, sign arbitrary.
+    residual : (N,) float64
+        Weighted root-mean-square distance of the neighbours to the fitted plane (weights of the
+        last refit), in the units of ``points``: the local noise level (0 on an exact plane).
+    """
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    n = len(p)
+    k = int(min(max(k, 3), n))
+    tree = tree if tree is not None else cKDTree(p)
+    normals = np.empty((n, 3))
+    residual = np.empty(n)
+    k0 = min(k, INITIAL_K)
+    for s in range(0, n, _CHUNK):
+        if check is not None:
+            check()
+        e = min(n, s + _CHUNK)
+        dist, idx = tree.query(p[s:e], k=k, workers=-1)
+        nb = p[idx]  # (c, k, 3)
+        sigma = SIGMA * dist[:, 1 : min(k, 5)].mean(axis=1, keepdims=True) + 1e-300
+        # Two starts: the few nearest neighbours (one face of a thin plate) and all k (plain PCA).
+        # Each is refitted with weights that fade off its plane; the fit that keeps the most
+        # neighbours on its plane wins.
+        best_score = np.full(e - s, -1.0)
+        for first in (k0, k):
+            w = np.zeros(nb.shape[:2])
+            w[:, :first] = 1.0
+            for it in range(REWEIGHTS + 1):
+                ws = w / w.sum(axis=1, keepdims=True)
+                centre = np.einsum("ck,cki->ci", ws, nb)
+                d = nb - centre[:, None, :]
+                cov = np.einsum("ck,cki,ckj->cij", ws, d, d)
+                lam, vec = np.linalg.eigh(cov)
+                normal = vec[:, :, 0]
+                r = np.einsum("cki,ci->ck", d, normal)
+                w = np.exp(-((r / sigma) ** 2))
+            score = w.sum(axis=1)
+            better = score > best_score
+            best_score[better] = score[better]
+            normals[s:e][better] = normal[better]
+            # Noise: the spread of the neighbours that the fit kept (weights near 1) around the
+            # plane; the other face of a thin plate has weights near 0 and does not inflate it.
+            wn = w / w.sum(axis=1, keepdims=True)
+            residual[s:e][better] = np.sqrt(np.einsum("ck,ck->c", wn, r * r))[better]
+            if k0 == k:
+                break
+    return normals, residual
+
+
+def _across_significant(across, length, i, j, noise):
+    """Whether an edge's offset along the normals stands out of the noise (:data:`SIG_NOISE`)."""
+    if noise is None:
+        return np.ones(len(across), dtype=bool)
+    return 0.5 * across * length > SIG_NOISE * np.maximum(noise[i], noise[j])
+
+
+def _graph(points, normals, tree, k, check: Check, noise=None):
+    """Symmetric k-nearest-neighbour graph with orientation costs as a sparse matrix."""
+    n = len(points)
+    k = int(min(k + 1, n))
+    rows, cols, cost = [], [], []
+    for s in range(0, n, _CHUNK):
+        if check is not None:
+            check()
+        e = min(n, s + _CHUNK)
+        dist, idx = tree.query(points[s:e], k=k, workers=-1)
+        i = np.repeat(np.arange(s, e), k - 1)
+        j = idx[:, 1:].reshape(-1)
+        d = dist[:, 1:].reshape(-1)
+        ok = (j < n) & (d > 0)
+        i, j, d = i[ok], j[ok], d[ok]
+        off = (points[j] - points[i]) / d[:, None]
+        cos = np.abs(np.sum(normals[i] * normals[j], axis=1))
+        across = np.abs(np.sum(normals[i] * off, axis=1)) + np.abs(np.sum(normals[j] * off, axis=1))
+        # Along the surface (offset in both tangent planes) or straight across a thin plate or gap
+        # (offset along both normals): either is a confident edge; anything between is not. An
+        # offset along the normals within the noise is noise: the edge runs along the surface.
+        sig = _across_significant(across, d, i, j, noise)
+        c = (1.0 - cos) + np.where(sig, np.minimum(across, 2.0 - across), 0.3 * across)
+        rows.append(i)
+        cols.append(j)
+        cost.append(c + 1e-9)  # explicit zeros would be read as missing edges
+    g = coo_matrix((np.concatenate(cost), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+    return g.maximum(g.T)  # symmetric (an edge found from either end)
+
+
+try:
+    import numba as _nb
+
+    @_nb.njit(cache=True, nogil=True)
+    def _propagate_signs(order, pred, relation, start):  # pragma: no cover - compiled
+        sign = start.copy()
+        for pos in range(order.shape[0]):
+            v = order[pos]
+            p = pred[v]
+            if p >= 0:
+                sign[v] = sign[p] * relation[v]
+        return sign
+
+except ImportError:  # pragma: no cover - numba is a declared dependency
+
+    def _propagate_signs(order, pred, relation, start):
+        sign = start.copy()
+        for v in order:
+            if pred[v] >= 0:
+                sign[v] = sign[pred[v]] * relation[v]
+        return sign
+
+
+def edge_relation(points, normals, i, j, noise=None) -> np.ndarray:
+    """For edges ``(i, j)``: +1 if the estimated normals keep their relative sign, -1 if one flips.
+
+    Along the surface (the offset lies in both tangent planes) they agree; straight across a thin
+    plate or a narrow gap (the offset runs along both normals) the outward normals point opposite
+    ways; at a sharp edge (normals more than 60 degrees apart) the edge is taken as convex, each
+    normal pointing away from the other point. ``noise`` (N,), the points' plane-fit residuals:
+    offsets along the normals within :data:`SIG_NOISE` of them do not count as "across".
+    """
+    off = points[j] - points[i]
+    length = np.linalg.norm(off, axis=1)
+    off = off / np.maximum(length, 1e-300)[:, None]
+    dot = np.sum(normals[i] * normals[j], axis=1)
+    a = np.sum(normals[i] * off, axis=1)
+    b = np.sum(normals[j] * off, axis=1)
+    across = (np.abs(a) + np.abs(b) > 1.0) & _across_significant(np.abs(a) + np.abs(b), length, i, j, noise)
+    smooth = np.where(dot >= 0, 1.0, -1.0) * np.where(across, -1.0, 1.0)
+    convex = -np.where(a >= 0, 1.0, -1.0) * np.where(b >= 0, 1.0, -1.0)
+    return np.where(np.abs(dot) >= 0.5, smooth, convex)
+
+
+def fibonacci_directions(n: int, upper_only: bool = False) -> np.ndarray:
+    """``n`` unit vectors (n, 3) spread evenly over the sphere (or the upper half, z > 0)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - i / n if upper_only else 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def _basis(d):
+    """Two unit vectors (3,), (3,) completing the unit direction ``d`` to an orthonormal basis."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = np.cross(d, helper)
+    a /= np.linalg.norm(a)
+    return a, np.cross(d, a)
+
+
+def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=None, noise: float = 0.0,
+                     layers=None, check: Check = None):
+    """Signed votes (N,) for each normal from the views in which its point is visible.
+
+    A view is an orthographic projection along one of ``directions`` (unit vectors pointing from
+    the viewer into the scene), or a pinhole camera at one of ``viewpoints`` (six 90-degree faces of
+    a cube map). Each point is drawn as a disc of radius ``3 * spacing`` in its tangent plane into a
+    depth buffer; a point is visible when nothing lies more than ``spacing / 2`` in front of it.
+    A visible point whose normal makes an angle under 78 degrees with the line of sight votes
+    ``+|cos|`` if its normal faces the viewer and ``-|cos|`` if not; the votes are summed.
+    ``layers``: two (N,) bool arrays, whether another layer lies on the side each normal points to
+    and on the other side (:func:`layer_sides`); a point with one on its viewer's side is hidden
+    from that view, however close the layers are. Returns votes (N,) and their weights (N,).
+    """
+    from . import _orient_kernels as ok
+
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    nrm = np.ascontiguousarray(normals, dtype=np.float64)
+    votes = np.zeros(len(p))
+    weight = np.zeros(len(p))
+    radius = SPLAT_RADIUS * spacing
+    tol = 0.5 * spacing + TOL_NOISE * noise
+    pixel = 0.5 * spacing
+    views = []  # (origin (3,), a, b, d, perspective)
+    centre = 0.5 * (p.min(axis=0) + p.max(axis=0))
+    if directions is not None:
+        for d in np.asarray(directions, dtype=np.float64):
+            d = d / np.linalg.norm(d)
+            a, b = _basis(d)
+            views.append((centre, a, b, d, False))
+    if viewpoints is not None:
+        axes = np.eye(3)
+        for s in np.asarray(viewpoints, dtype=np.float64):
+            for k in range(3):
+                for sgn in (1.0, -1.0):
+                    d = sgn * axes[k]
+                    a, b = _basis(d)
+                    views.append((s, a, b, d, True))
+    for origin, a, b, d, perspective in views:
+        if check is not None:
+            check()
+        rel = p - origin
+        u = rel @ a
+        v = rel @ b
+        w = rel @ d
+        na, nb_, nd = nrm @ a, nrm @ b, nrm @ d
+        if perspective:
+            front = w > 1e-9 * max(1.0, float(np.abs(w).max()))
+            wf = np.where(front, w, np.inf)
+            u = np.where(front, u / wf, np.inf)
+            v = np.where(front, v / wf, np.inf)
+            dist = np.linalg.norm(rel, axis=1)
+            ray = rel / np.maximum(dist, 1e-300)[:, None]
+            cosang = np.sum(nrm * ray, axis=1)
+            inside = front & (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
+            # Angular disc radius and pixel size at each point's distance.
+            wmin = float(w[inside].min()) if inside.any() else 1.0
+            pix = pixel / max(float(np.median(w[inside])) if inside.any() else 1.0, wmin)
+            vis = ok.zbuffer_visible(u, v, dist, np.zeros_like(u), np.zeros_like(u), radius / np.maximum(w, 1e-300),
+                                     inside, pix, -1.0, 1.0, tol)
+        else:
+            cosang = nd
+            slope_u = np.clip(-na / np.where(np.abs(nd) > 1e-6, nd, 1e-6), -3.0, 3.0)
+            slope_v = np.clip(-nb_ / np.where(np.abs(nd) > 1e-6, nd, 1e-6), -3.0, 3.0)
+            half = float(max(np.abs(u).max(), np.abs(v).max())) + radius
+            vis = ok.zbuffer_visible(u, v, w, slope_u, slope_v, np.full(len(p), radius),
+                                     np.ones(len(p), dtype=np.bool_), pixel, -half, half, tol)
+        use = vis & (np.abs(cosang) > 0.2)
+        if layers is not None:
+            # Another layer between the point and the viewer hides it, however close.
+            use &= ~np.where(cosang < 0, layers[0], layers[1])
+        votes[use] -= cosang[use]  # the normal faces the viewer when it points against the ray
+        weight[use] += np.abs(cosang[use])
+    return votes, weight
+
+
+CONSENSUS_ROUNDS = 30
+
+
+def _relations(g, points, normals, noise=None):
+    """Signed edge weights (sparse, like ``g``): ``w_ij * r_ij`` with ``r_ij = +1`` when the two
+    estimated normals should keep their relative sign, ``-1`` when one of them should flip, and
+    ``w_ij = exp(-cost_ij / 0.2)`` (confident edges weigh about 1, ambiguous ones about 0)."""
+    g = g.tocoo()
+    i, j = g.row, g.col
+    rel = edge_relation(points, normals, i, j, noise)
+    w = np.exp(-g.data / 0.2)
+    return coo_matrix((w * rel, (i, j)), shape=g.shape).tocsr()
+
+
+def _consensus(g, points, normals, sign, votes, check: Check, rounds: int = CONSENSUS_ROUNDS, noise=None):
+    """Flip isolated wrong signs: repeatedly give each point the sign its neighbours and its own
+    view votes agree on (iterated conditional modes on ``-sum_ij A_ij s_i s_j - sum_i v_i s_i``).
+    Only points whose evidence clearly disagrees with their sign flip, so the iteration settles."""
+    a = _relations(g, points, normals, noise)
+    s = sign.copy()
+    for _ in range(rounds):
+        if check is not None:
+            check()
+        field = a @ s + votes
+        flip = field * s < -0.5
+        if not flip.any():
+            break
+        s[flip] *= -1.0
+    return s
+
+
+def _components(n, rows, cols):
+    """Connected components ``(count, labels (n,))`` of the graph on ``n`` points with edges
+    ``(rows[e], cols[e])``."""
+    return connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+
+
+def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, noise=None):
+    """Flip whole undecided pieces that disagree with their surroundings.
+
+    Points the views did not decide, joined by confident edges (cost < 0.5), form pieces (say the
+    hidden facing sides of two objects that nearly touch). The spanning tree ties each piece to the
+    rest by one edge, which at a sharp edge is a guess; here every edge between the piece and the
+    rest votes, and the piece flips when the votes (``sum r_ij s_i s_j``) say it disagrees."""
+    g = g.tocoo()
+    i, j, cost = g.row, g.col, g.data
+    free = seed == 0
+    inner = free[i] & free[j] & (cost < 0.5)
+    n = len(sign)
+    n_pieces, labels = _components(n, i[inner], j[inner])
+    rel = edge_relation(points, normals, i, j, noise)
+    boundary = free[i] & (labels[i] != labels[j])
+    bi, bj, br = i[boundary], j[boundary], rel[boundary]
+    # Edges to points the views decided count fully; to other undecided pieces (which may be
+    # wrong themselves) a quarter.
+    bw = np.where(free[bj], 0.25, 1.0)
+    s = sign.copy()
+    for _ in range(rounds):
+        if check is not None:
+            check()
+        vote = np.bincount(labels[bi], weights=bw * br * s[bi] * s[bj], minlength=n_pieces)
+        flip = vote < 0
+        if not flip.any():
+            break
+        s[free & flip[labels]] *= -1.0
+    return s
+
+
+def layer_sides(points, normals, spacing, tree, noise: float = 0.0, check: Check = None, index=None):
+    """Points of another layer above and below each point's plane: counts (N,), (N,) (int64), or
+    (M,), (M,) for the points ``index`` (M,) only.
+
+    Among the :data:`LAYER_K` nearest neighbours within :data:`LAYER_RADIUS` spacings, those with
+    nearly parallel normals (``|n_i . n_j| > LAYER_PARALLEL``) whose offset ``h`` along ``n_i``
+    exceeds :data:`LAYER_OFFSET` spacings (and :data:`SIG_NOISE` noise levels) beyond what the
+    surface's bending explains belong to another layer: the other face of a thin part, or the far
+    side of a narrow gap. A neighbour on the same curved sheet, at lateral distance ``t`` with
+    normals ``theta`` apart, lies ``t * tan(theta / 2)`` off the plane (exact on a circle), so
+    only ``|h| - t * tan(theta / 2)`` counts: the inside of a bowl is no layer.
+    ``above`` counts the layer points on the side ``n_i`` points to, ``below`` the others.
+    """
+    p = points
+    index = np.arange(len(p)) if index is None else np.asarray(index)
+    n = len(index)
+    k = int(min(LAYER_K + 1, len(p)))
+    above = np.zeros(n, dtype=np.int64)
+    below = np.zeros(n, dtype=np.int64)
+    reach = LAYER_RADIUS * spacing
+    min_h = max(LAYER_OFFSET * spacing, SIG_NOISE * noise)
+    for s in range(0, n, _CHUNK):
+        if check is not None:
+            check()
+        e = min(n, s + _CHUNK)
+        q = index[s:e]
+        dist, idx = tree.query(p[q], k=k, workers=-1)
+        dist, idx = dist[:, 1:], idx[:, 1:]
+        nrm = normals[q]
+        h = np.einsum("cki,ci->ck", p[idx] - p[q, None, :], nrm)
+        cos = np.minimum(np.abs(np.einsum("cki,ci->ck", normals[idx], nrm)), 1.0)
+        lateral = np.sqrt(np.maximum(dist * dist - h * h, 0.0))
+        bend = lateral * np.sqrt((1.0 - cos) / (1.0 + cos))  # t * tan(theta / 2)
+        near = (dist < reach) & (cos > LAYER_PARALLEL)
+        off = np.abs(h) - bend > min_h
+        above[s:e] = (near & off & (h > 0)).sum(axis=1)
+        below[s:e] = (near & off & (h < 0)).sum(axis=1)
+    return above, below
+
+
+def layer_votes(points, normals, spacing, tree, noise: float = 0.0, check: Check = None, sides=None) -> np.ndarray:
+    """Which side of each point its thin part's other face lies on: votes (N,) in {-1, 0, +1}.
+
+    From :func:`layer_sides` (or ``sides``, its result): when at least :data:`LAYER_MIN` layer
+    points lie below the plane and none above, the vote is +1 (for a solid plate, the outward
+    normal points away from its other face); the mirror case gives -1; anything else (no other
+    layer, layers on both sides) gives 0.
+    """
+    above, below = sides if sides is not None else layer_sides(points, normals, spacing, tree, noise, check)
+    return np.where((below >= LAYER_MIN) & (above == 0), 1.0,
+                    np.where((above >= LAYER_MIN) & (below == 0), -1.0, 0.0))
+
+
+def _layer_seeds(g, normals, votes, seed) -> np.ndarray:
+    """Seeds (N,) extended by the layer votes where the views left points undecided.
+
+    Layer points (``votes != 0``) joined by edges of the neighbour graph ``g`` with parallel normals
+    (not around a sharp edge, onto another face) form regions; a region's votes are used when at
+    least :data:`LAYER_CHECKS` of its points were also seeded by the views and at least
+    :data:`LAYER_AGREEMENT` of those agree with their votes. A narrow gap
+    between two parts (its facing sides point into it, against the votes) is hidden from the views
+    and gets no seeds, so it keeps the propagated signs."""
+    layer = votes != 0
+    both = layer & (seed != 0)
+    if both.sum() < LAYER_CHECKS:  # no region can be trusted (smooth closed shapes, most inputs)
+        return seed
+    g = g.tocoo()
+    par = np.abs(np.sum(normals[g.row] * normals[g.col], axis=1)) > LAYER_PARALLEL
+    inner = layer[g.row] & layer[g.col] & par
+    n_regions, labels = _components(len(votes), g.row[inner], g.col[inner])
+    checked = np.bincount(labels[both], minlength=n_regions)
+    agreed = np.bincount(labels[both], weights=(seed[both] == votes[both]).astype(float), minlength=n_regions)
+    trusted = (checked >= LAYER_CHECKS) & (agreed >= LAYER_AGREEMENT * checked)
+    use = layer & (seed == 0) & trusted[labels]
+    return np.where(use, votes, seed)
+
+
+def _seeded_propagation(g, points, normals, seed_sign, noise=None):
+    """Orient every point from the seeds: ``seed_sign`` (N,) is +1/-1 for seeds, 0 elsewhere.
+
+    Seeds hang from a virtual root; the rest joins the seeds along the minimum spanning tree of the
+    neighbour graph ``g`` and takes its sign from its parent. Pieces without any seed start from
+    their first point with its current sign. Returns signs (N,) and the number of pieces.
+    """
+    n = normals.shape[0]
+    n_pieces, labels = connected_components(g, directed=False)
+    seeded_piece = np.zeros(n_pieces, dtype=bool)
+    seeded_piece[labels[seed_sign != 0]] = True
+    anchors = np.flatnonzero(seed_sign != 0)
+    first = np.full(n_pieces, -1, dtype=np.int64)
+    first[labels[::-1]] = np.arange(n)[::-1]
+    extra = first[~seeded_piece]
+    roots = np.concatenate([anchors, extra])
+    g = g.tocoo()
+    tiny = 1e-12
+    r = np.concatenate([g.row, np.full(len(roots), n)])
+    c = np.concatenate([g.col, roots])
+    w = np.concatenate([g.data, np.full(len(roots), tiny)])
+    full = coo_matrix((w, (r, c)), shape=(n + 1, n + 1)).tocsr()
+    mst = minimum_spanning_tree(full)
+    order, pred = breadth_first_order(mst, n, directed=False, return_predecessors=True)
+    pred = pred.astype(np.int64)
+    pred[pred == n] = -1
+    pred[pred < 0] = -1
+    order = order[order != n].astype(np.int64)
+    start = np.where(seed_sign != 0, seed_sign, 1.0)
+    relation = np.ones(n)
+    child = np.flatnonzero(pred >= 0)
+    relation[child] = edge_relation(points, normals, pred[child], child, noise)
+    sign = _propagate_signs(order, pred, relation, start)
+    return sign, int(n_pieces)
+
+
+def _harmonic_signs(g, points, normals, sign, seed, noise=None, check: Check = None):
+    """Signs (N,) from a global least-squares fit over the confident edges, seeded by the views.
+
+    The spanning tree takes each point's sign along one path from a seed, so one wrong edge on that
+    path flips everything behind it. Here every confident edge (cost below
+    :data:`HARMONIC_COST`) and every seed votes at once: the real-valued ``s`` minimising::
+
+        sum_ij w_ij (s_i - r_ij s_j)^2 + sum_i c_i (s_i - v_i)^2
+
+        w_ij = exp(-cost_ij / HARMONIC_COST), r_ij = edge_relation(i, j)
+        c_i = HARMONIC_SEED for seeds (v_i = the views' sign), 1e-6 * HARMONIC_SEED elsewhere
+        (v_i = ``sign``, so pieces without seeds or confident edges keep their sign)
+
+    solves one sparse, symmetric positive definite system (a signed graph Laplacian plus a
+    diagonal), and the new sign is the sign of ``s``: a signed version of harmonic label
+    propagation, where a point's sign comes from all the paths to all seeds, weighted.
+    """
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import spsolve
+
+    g = g.tocoo()
+    keep = g.data < HARMONIC_COST
+    i, j = g.row[keep], g.col[keep]
+    rel = edge_relation(points, normals, i, j, noise)
+    w = np.exp(-g.data[keep] / HARMONIC_COST)
+    a = coo_matrix((w * rel, (i, j)), shape=g.shape).tocsr()
+    degree = np.asarray(abs(a).sum(axis=1)).ravel()
+    c = np.where(seed != 0, HARMONIC_SEED, 1e-6 * HARMONIC_SEED)
+    v = np.where(seed != 0, seed, sign)
+    if check is not None:
+        check()
+    s = spsolve((diags(degree + c) - a).tocsc(), c * v)
+    return np.where(s >= 0, 1.0, -1.0)
+
+
+def _winding_signs(points, normals, sign, fixed, layer, spacing, check: Check = None):
+    """Signs (N,) refined by the winding number of the oriented cloud (closed objects only).
+
+    For a consistently oriented closed surface the winding number's gradient at each point, from
+    the rest of the surface (:class:`~nkf_model.points.winding.WindingGradient`, leaving out the
+    :data:`WINDING_EXCLUDE` spacings around it), points inward; Lin et al. (SIGGRAPH Asia 2024,
+    "winding number normal consistency") orient by iterating that. Here each point not in
+    ``fixed`` (N,) bool (the views' seeds) takes the sign that makes ``-g`` agree with its normal,
+    for :data:`WINDING_ROUNDS` rounds or until nothing flips. The field reaches into hidden places
+    the views and the neighbour graph decide poorly (a box behind a lid, the inside of a tank's
+    tracks), but not across thin parts: both faces of a plate lie within the left-out radius, so
+    their field comes from the rest of the shape. There (``layer`` (N,) bool) a point follows it
+    only where the field is strong: ``|g . n| * spacing`` at least :data:`WINDING_LAYER_FIELD`.
+    Above :data:`WINDING_POINTS` points, a random subset is refined and then the field of the
+    subset decides the rest once. Returns the signs and the field when it holds every point
+    (else None).
+    """
+    from ..points.winding import AREA_NEIGHBOURS, WindingGradient
+
+    n = len(points)
+    if n <= AREA_NEIGHBOURS:
+        return sign, None
+    sub = np.arange(n)
+    sub_spacing = spacing
+    if n > WINDING_POINTS:
+        sub = np.sort(np.random.default_rng(1).choice(n, WINDING_POINTS, replace=False))
+        sub_spacing = spacing * float(np.sqrt(n / WINDING_POINTS))
+    need = np.where(layer, WINDING_LAYER_FIELD, 0.0)
+
+    def follow(s, g, idx):
+        f = -np.sum(g * normals[idx], axis=1) * spacing
+        free = ~fixed[idx] & (np.abs(f) >= need[idx]) & (f != 0)
+        return np.where(free, np.where(f > 0, 1.0, -1.0), s[idx])
+
+    field = WindingGradient(points[sub], normals[sub], WINDING_EXCLUDE * sub_spacing, check=check)
+    s = sign.copy()
+    for _ in range(WINDING_ROUNDS):
+        new = follow(s, field(s[sub], check=check), sub)
+        changed = bool((new != s[sub]).any())
+        s[sub] = new
+        if not changed:
+            break
+    if len(sub) < n:
+        rest = np.setdiff1d(np.arange(n), sub)
+        s[rest] = follow(s, field(s[sub], points[rest], check=check), rest)
+        return s, None
+    return s, field
+
+
+N_VIEWS = 64  # orthographic views for "outward" (all around) and "up" (upper half)
+VIEW_POINTS = 40_000  # points drawn into the views at most
+# A point's sign is taken from the views when the votes agree this much (|sum| / sum of |votes|);
+# otherwise it is propagated from its neighbours.
+VOTE_AGREEMENT = 0.5
+# ... and when their total weight (about the number of views that saw the point face-on) is at least
+# this: points seen from only one or two views are mostly seen through gaps between the discs.
+VOTE_WEIGHT = 3.0
+TOL_NOISE = 1.5  # depth tolerance of the views, in noise levels (on top of half a spacing)
+HARMONIC_COST = 0.1  # edges cheaper than this join the global sign fit (_harmonic_signs)
+HARMONIC_SEED = 0.01  # weight of a seed's sign in that fit, against 1 for a confident edge
+SIG_NOISE = 1.5  # offsets along the normals below this many noise levels are noise
+NOISE_QUANTILE = 0.25  # the noise level is this quantile of the points' plane-fit residuals
+SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
+VIEWPOINT_VOTE_WEIGHT = 0.25
+# Winding-number refinement (_winding_signs), chosen on the val meshes (docs/scans.md).
+WINDING_ROUNDS = 10
+WINDING_EXCLUDE = 3.0  # radius left out around each point, in spacings
+WINDING_LAYER_FIELD = 0.08  # field a layer point needs to follow it (|g . n| * spacing)
+WINDING_POINTS = 20_000  # points refined at most (a random subset above)
+# Thin parts (layer_votes, _layer_seeds); measured on the val meshes with thin parts (docs/scans.md).
+LAYER_K = 24  # neighbours searched for the other face
+LAYER_RADIUS = 3.0  # ... within this many spacings
+LAYER_PARALLEL = 0.9  # |cos| between the normals of the two faces
+LAYER_OFFSET = 0.3  # offset along the normal, in spacings, that counts as the other face
+LAYER_MIN = 2  # points of the other face needed
+LAYER_CHECKS = 3  # view-seeded points a layer region needs ...
+LAYER_AGREEMENT = 0.8  # ... and the share of them that must agree with its votes
+
+
+def median_spacing(points: np.ndarray, tree: Optional[cKDTree] = None, sample: int = 20000) -> float:
+    """Median distance from a point to its nearest neighbour (on a fixed subsample of at most
+    ``sample`` points), in the units of ``points``."""
+    p = np.asarray(points, dtype=np.float64)
+    tree = tree if tree is not None else cKDTree(p)
+    idx = np.random.default_rng(0).choice(len(p), min(sample, len(p)), replace=False)
+    d, _ = tree.query(p[idx], k=2, workers=-1)
+    return float(np.median(d[:, 1]))
+
+
+def orient_normals(
+    points: np.ndarray,
+    normals: np.ndarray,
+    *,
+    orientation: str = "outward",
+    viewpoints=None,
+    k: int = DEFAULT_GRAPH_K,
+    tree: Optional[cKDTree] = None,
+    noise: Optional[np.ndarray] = None,
+    residual: Optional[np.ndarray] = None,
+    learned: bool = True,
+    check: Check = None,
+):
+    """Give unoriented unit normals consistent signs.
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+    normals : (N, 3) float64
+        Unit normals of arbitrary sign (for example from :func:`pca_normals`).
+    orientation : {"outward", "up", "viewpoint"}
+        Which views vote (see the module docstring).
+    viewpoints : (3,) or (K, 3) float, optional
+        Scanner positions, in the same frame as ``points`` (needed for ``"viewpoint"``).
+    k : int
+        Neighbours per point in the propagation graph.
+    noise : (N,) float64, optional
+        Local noise level of each point (the ``residual`` of :func:`pca_normals`), in the units of
+        ``points``: offsets within it are not read as geometry.
+    residual : (N,) float64, optional
+        Each point's own plane-fit residual (``noise`` when not given), read by the learned sign
+        check.
+    learned : bool
+        For ``"outward"``: finish with the learned sign check (:mod:`nkf_model.normals.sign_check`, clouds
+        of at most :data:`~nkf_model.normals.sign_check.MAX_POINTS` points).
+
+    Returns
+    -------
+    normals : (N, 3) float64
+        Oriented unit normals.
+    info : OrientationInfo
+    """
+    sign, state, info = _orient(points, normals, orientation=orientation, viewpoints=viewpoints, k=k, tree=tree,
+                                noise=noise, residual=residual, check=check)
+    return _checked(sign, state, info, learned, check)
+
+
+def _checked(sign, state, info, learned: bool, check: Check):
+    """Oriented normals (N, 3) and ``info``, after the learned sign check where it applies."""
+    if learned and info.orientation == "outward":
+        from .sign_check import flip_wrong
+
+        sign, flips = flip_wrong(state, check=check)
+        info.learned_check, info.learned_flips = flips is not None, flips or 0
+    return state.normals * sign[:, None], info
+
+
+def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residual, check):
+    """Signs (N,), the :class:`~nkf_model.normals.sign_check.OrientationState` behind them and the
+    :class:`OrientationInfo`: :func:`orient_normals` without the learned check (also used to
+    train it)."""
+    from .sign_check import OrientationState
+
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    nrm = np.ascontiguousarray(normals, dtype=np.float64)
+    vp = check_viewpoints(viewpoints)
+    orientation = check_orientation(orientation, vp)
+    tree = tree if tree is not None else cKDTree(p)
+    spacing = median_spacing(p, tree)
+    # The views see a random subset of at most VIEW_POINTS points (drawn as larger discs): enough
+    # to seed the propagation, at a bounded cost.
+    n = len(p)
+    sub = np.arange(n)
+    view_spacing = spacing
+    if n > VIEW_POINTS:
+        sub = np.sort(np.random.default_rng(0).choice(n, VIEW_POINTS, replace=False))
+        view_spacing = spacing * float(np.sqrt(n / VIEW_POINTS))
+    noise_level = 0.0 if noise is None else float(np.median(noise))
+    # Layers closer than the views' depth tolerance (the two faces of a thin wall) are told apart
+    # by their neighbours: a point with another layer on its viewer's side is hidden. Objects
+    # need them for every point (layer votes, the winding-number step); scans for the views'.
+    if orientation == "viewpoint":
+        sides = None
+        layers = tuple(c > 0 for c in layer_sides(p, nrm, spacing, tree, noise_level, check, index=sub))
+        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, viewpoints=vp, noise=noise_level,
+                                  layers=layers, check=check)
+    else:
+        sides = layer_sides(p, nrm, spacing, tree, noise_level, check)
+        layers = (sides[0][sub] > 0, sides[1][sub] > 0)
+        dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
+        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, directions=-dirs, noise=noise_level,
+                                  layers=layers, check=check)
+    votes = np.zeros(n)
+    weight = np.zeros(n)
+    votes[sub], weight[sub] = sv, sw
+    agree = np.divide(np.abs(votes), weight, out=np.zeros_like(votes), where=weight > 0)
+    # A few scanners give few views: one clear view decides there.
+    min_weight = VOTE_WEIGHT if orientation != "viewpoint" else VIEWPOINT_VOTE_WEIGHT
+    seed = np.where((agree >= VOTE_AGREEMENT) & (weight >= min_weight), np.sign(votes), 0.0)
+    if check is not None:
+        check()
+    g = _graph(p, nrm, tree, k, check, noise)
+    n_seeded = int((seed != 0).sum())
+    view_seed = seed
+    sign, pieces = _seeded_propagation(g, p, nrm, seed, noise)
+    sign = _flip_pieces(g, p, nrm, sign, seed, check, noise=noise)
+    if orientation != "viewpoint":
+        # Thin parts with both faces sampled belong to objects (a scanner sees one side of each
+        # surface). Their layer votes join the global fit only: as hard seeds of the spanning tree,
+        # a few wrong ones (the facing sides of a narrow gap) would decide everything behind them.
+        lv = layer_votes(p, nrm, spacing, tree, sides=sides)
+        seed = _layer_seeds(g, nrm, lv, seed)
+    sign = _harmonic_signs(g, p, nrm, sign, seed, noise, check)
+    sign = _consensus(g, p, nrm, sign, votes, check, noise=noise)
+    if orientation == "outward":
+        # Closed objects: the winding number's field says which side is in where the views saw
+        # nothing (open scans and terrain have no inside).
+        sign, winding = _winding_signs(p, nrm, sign, view_seed != 0, (sides[0] > 0) | (sides[1] > 0), spacing,
+                                       check)
+    else:
+        winding = None
+    info = OrientationInfo(orientation=orientation, pieces=pieces,
+                           seeded=n_seeded, spacing=spacing)
+    if sides is None:  # viewpoint: no layer votes
+        sides = (np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64))
+        lv = np.zeros(n)
+    res = residual if residual is not None else (noise if noise is not None else np.zeros(n))
+    state = OrientationState(points=p, normals=nrm, sign=sign, votes=votes, weight=weight, view_seed=view_seed,
+                             layer_seed=seed, layer_vote=lv, above=sides[0], below=sides[1], graph=g,
+                             residual=np.asarray(res, dtype=np.float64), spacing=spacing, winding=winding)
+    return sign, state, info
+
+
+def estimate_normals(
+    points: np.ndarray,
+    *,
+    k: int = DEFAULT_K,
+    orientation: Optional[str] = None,
+    viewpoints=None,
+    check: Check = None,
+):
+    """Oriented unit normals for a point cloud without normals.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        Positions in any units (finite, no exact duplicates: see :func:`nkf_model.points.clean.clean_points`).
+    k : int
+        Neighbours for the PCA fit (the orientation graph uses :data:`DEFAULT_GRAPH_K`).
+    orientation : {"outward", "up", "viewpoint"} or None
+        Rule for each piece's global sign; ``None`` picks ``"viewpoint"`` when ``viewpoints`` are
+        given, else ``"outward"``.
+    viewpoints : (3,) or (K, 3) float, optional
+        Scanner or camera positions in the frame of ``points``.
+
+    Returns
+    -------
+    normals : (N, 3) float64
+        Oriented unit normals.
+    info : OrientationInfo
+    """
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 3 <= k <= 200:
+        raise InvalidParameterError(f"normal neighbours k must be an integer from 3 to 200, got {k!r}")
+    vp = check_viewpoints(viewpoints)
+    orientation = check_orientation(orientation, vp)
+    return _checked(*_estimate(points, k, orientation, vp, check), learned=True, check=check)
+
+
+def _estimate(points, k: int, orientation: str, viewpoints, check: Check = None):
+    """PCA normals of ``points`` oriented without the learned check: what :func:`_orient`
+    returns (also used to train the check, :mod:`nkf_model.train.sign_check_training`)."""
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    tree = cKDTree(p)
+    nrm, residual = pca_normals(p, k, tree=tree, check=check)
+    # One noise level for the whole cloud, from its flattest quarter: residuals also grow with
+    # curvature and at sharp edges, where offsets along the normals are geometry, not noise.
+    noise = np.full(len(p), float(np.quantile(residual, NOISE_QUANTILE)))
+    return _orient(p, nrm, orientation=orientation, viewpoints=viewpoints, k=DEFAULT_GRAPH_K, tree=tree,
+                   noise=noise, residual=residual, check=check)

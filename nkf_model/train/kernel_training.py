@@ -1,0 +1,576 @@
+"""``nkf train``: fit the feature network of the learned kernel on the mesh corpus.
+
+One step draws ``batch`` training meshes and one augmented example of each
+(:func:`nkf_model.train.examples.make_example`), fits the kernel to the example's constraints with the
+features the network gives (:func:`nkf_model.train.differentiable_fit.fit_and_evaluate`, float64, gradients
+through the solve) and minimises::
+
+    BCE(sigmoid(-s f(q)), occupancy(q))  over near-surface and volume queries q
+    + surface_weight * mean |f(p)|      over points p on the true surface
+
+Runs are seeded: the examples of step ``k`` come from ``numpy.random.default_rng([seed, k])``, so a
+run resumed from a checkpoint sees the same data as an uninterrupted one. Checkpoints (every
+``checkpoint_every`` steps, and at the end) hold only tensors and numbers and are read back with
+``torch.load(weights_only=True)``. The run writes into ``--out``:
+
+* ``train.log``: a plain log (settings, losses, validation), appended across resumes;
+* ``metrics.csv``: one row per step (loss) and per validation;
+* ``curves.png``: training loss and validation IoU against steps (needs matplotlib, the ``train``
+  extra);
+* ``nkf.safetensors``: the weights with the best validation IoU, with the config in the metadata;
+* ``checkpoint.pt``: the latest state for ``--resume``.
+
+Validation uses meshes held out of the ``train`` split (``holdout`` of them, never trained on), so
+the corpus's ``val`` split stays untouched for the benchmark. Each validation example is fitted
+with the learned kernel and with the data-free kernel (features zero); the log shows both IoUs.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import platform
+import sys
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from ..fit.augment import augment, default_eps
+from ..kernel.feature_net import FeatureConfig
+from .examples import AugmentSpec, CacheSpec, Example
+
+DEFAULT_CONFIG = Path("configs/nkf.toml")
+
+
+@dataclass
+class FitSpec:
+    """Loss and solve settings."""
+
+    lam: float = 1e-10
+    sharpness: float = 2.0
+    surface_weight: float = 1.0
+
+
+@dataclass
+class DataSpec:
+    split: str = "train"
+    holdout: int = 24
+    cache: str = ".train-cache"
+    limit: int = 0  # use only this many training meshes (0: all); for tests and smoke runs
+
+
+@dataclass
+class TrainSpec:
+    seed: int = 0
+    steps: int = 6000
+    budget_minutes: float = 0.0  # also stop (and anneal the learning rate) by wall time; 0: no limit
+    batch: int = 2
+    lr: float = 1e-3
+    warmup: int = 200
+    final_lr_fraction: float = 0.05
+    grad_clip: float = 1.0
+    const_lr_scale: float = 20.0  # learning-rate multiplier of the constant feature's log(c^2)
+    val_every: int = 500
+    checkpoint_every: int = 250
+    threads: int = 2
+    device: str = "auto"
+
+
+@dataclass
+class TrainConfig:
+    model: FeatureConfig = field(default_factory=FeatureConfig)
+    fit: FitSpec = field(default_factory=FitSpec)
+    data: DataSpec = field(default_factory=DataSpec)
+    augment: AugmentSpec = field(default_factory=AugmentSpec)
+    cache: CacheSpec = field(default_factory=CacheSpec)
+    train: TrainSpec = field(default_factory=TrainSpec)
+    validation: list = field(
+        default_factory=lambda: [
+            {"points": 1000, "noise": 0.0, "half": False},
+            {"points": 1000, "noise": 0.005, "half": False},
+            {"points": 300, "noise": 0.0, "half": False},
+            {"points": 3000, "noise": 0.0, "half": True},
+        ]
+    )
+
+    def to_dict(self) -> dict:
+        return {
+            "model": self.model.to_dict(),
+            "fit": asdict(self.fit),
+            "data": asdict(self.data),
+            "augment": asdict(self.augment),
+            "cache": asdict(self.cache),
+            "train": asdict(self.train),
+            "validation": list(self.validation),
+        }
+
+
+def _section(cls, d: dict, name: str):
+    names = {f.name for f in fields(cls)}
+    unknown = set(d) - names
+    if unknown:
+        raise ValueError(f"[{name}] has unknown keys: {', '.join(sorted(unknown))}")
+    return cls(**d)
+
+
+def load_config(path) -> TrainConfig:
+    """Read a TOML training config; unknown sections or keys are errors."""
+    with open(path, "rb") as fh:
+        raw = tomllib.load(fh)
+    known = {"model", "fit", "data", "augment", "cache", "train", "validation"}
+    unknown = set(raw) - known
+    if unknown:
+        raise ValueError(f"{path}: unknown sections {', '.join(sorted(unknown))}")
+    cfg = TrainConfig(
+        model=FeatureConfig.from_dict(raw.get("model", {})),
+        fit=_section(FitSpec, raw.get("fit", {}), "fit"),
+        data=_section(DataSpec, raw.get("data", {}), "data"),
+        augment=_section(AugmentSpec, raw.get("augment", {}), "augment"),
+        cache=_section(CacheSpec, raw.get("cache", {}), "cache"),
+        train=_section(TrainSpec, raw.get("train", {}), "train"),
+    )
+    if "validation" in raw:
+        cfg.validation = list(raw["validation"])
+    return cfg
+
+
+# --------------------------------------------------------------------------------------------
+# The differentiable forward pass of one example
+
+
+def example_field(net, ex: Example, lam: float, queries: np.ndarray, *, use_features: bool = True, device="cpu",
+                  use_weights: bool = True):
+    """Field values (Q,) float64 tensor at ``queries`` (Q, 3) after fitting the example's input.
+
+    With ``use_features=False`` the features are zero and the weights one: the Neural Splines fit.
+    With ``use_weights=False`` the learned features are used but every per-point weight is one.
+    """
+    import torch
+
+    from .differentiable_fit import fit_and_evaluate
+
+    n = len(ex.points)
+    xa, y = augment(ex.points, ex.normals, default_eps(n))
+    xa_t = torch.as_tensor(xa, dtype=torch.float64, device=device)
+    q_t = torch.as_tensor(queries, dtype=torch.float64, device=device)
+    y_t = torch.as_tensor(y, dtype=torch.float64, device=device)
+    one_a = torch.ones(len(xa), 1, dtype=torch.float64, device=device)
+    one_q = torch.ones(len(queries), 1, dtype=torch.float64, device=device)
+    if use_features:
+        grid = net.grid_features(xa_t.float(), y_t.float())
+        phi_a, w = net.point_features(grid, xa_t.float())
+        phi_q, _ = net.point_features(grid, q_t.float())
+        a = torch.cat([xa_t, phi_a.double(), one_a], dim=1)
+        q = torch.cat([q_t, phi_q.double(), one_q], dim=1)
+        if w is not None and use_weights:
+            w = w.double()
+            a = a * w[:, None]
+            y_t = y_t * w
+    else:
+        a = torch.cat([xa_t, one_a], dim=1)
+        q = torch.cat([q_t, one_q], dim=1)
+    return fit_and_evaluate(a, y_t, lam, q)
+
+
+def example_loss(net, ex: Example, fit: FitSpec, device="cpu"):
+    """Loss of one example (scalar tensor) and its parts (floats)."""
+    import torch
+    import torch.nn.functional as F
+
+    q = np.concatenate([ex.queries, ex.surface])
+    f = example_field(net, ex, fit.lam, q, device=device)
+    nq = len(ex.queries)
+    occ = torch.as_tensor(ex.occupancy, dtype=torch.float64, device=device)
+    bce = F.binary_cross_entropy_with_logits(-fit.sharpness * f[:nq], occ)
+    surf = f[nq:].abs().mean() if len(ex.surface) else torch.zeros((), dtype=torch.float64, device=device)
+    loss = bce + fit.surface_weight * surf
+    return loss, {"bce": float(bce.detach()), "surface": float(surf.detach())}
+
+
+def field_iou(f: np.ndarray, queries: np.ndarray, occupancy: np.ndarray) -> float:
+    """IoU of ``f < 0`` (inside the evaluation grid box only) against the true occupancy."""
+    from ..surface.evaluate import GRID_HALF
+
+    pred = (f < 0) & np.all(np.abs(queries) <= GRID_HALF, axis=1)
+    true = occupancy > 0.5
+    union = np.logical_or(pred, true).sum()
+    return float(np.logical_and(pred, true).sum() / union) if union else 1.0
+
+
+# --------------------------------------------------------------------------------------------
+# Training
+
+
+class Trainer:
+    """Everything of one training run; see the module docstring."""
+
+    def __init__(self, cfg: TrainConfig, out: Path, *, progress: bool = True, log_to_stderr: bool = True):
+        import torch
+
+        from ..kernel.feature_net import FeatureNet
+        from . import corpus
+
+        self.cfg = cfg
+        self.out = Path(out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.progress = progress
+        self.log_to_stderr = log_to_stderr
+        torch.set_num_threads(max(1, cfg.train.threads))
+        try:
+            import numba
+
+            numba.set_num_threads(max(1, min(cfg.train.threads, numba.config.NUMBA_NUM_THREADS)))
+        except ImportError:  # pragma: no cover - numba is a dependency
+            pass
+        dev = cfg.train.device
+        if dev == "auto":
+            dev = "cuda" if torch.cuda.is_available() else "cpu"
+        self.device = dev
+        torch.manual_seed(cfg.train.seed)
+        self.net = FeatureNet(cfg.model).to(dev)
+        const = [p for n, p in self.net.named_parameters() if n == "log_c2"]
+        rest = [p for n, p in self.net.named_parameters() if n != "log_c2"]
+        groups = [{"params": rest, "scale": 1.0}]
+        if const:
+            groups.append({"params": const, "scale": cfg.train.const_lr_scale})
+        self.opt = torch.optim.Adam(groups, lr=cfg.train.lr)
+        self.step = 0
+        self.best = -1.0
+        self.elapsed = 0.0  # seconds of training over all sessions of this run
+
+        entries = [e for e in corpus.manifest() if e.split == cfg.data.split]
+        entries.sort(key=lambda e: corpus.stable_seed("holdout", e.name))
+        self.holdout_entries = entries[: cfg.data.holdout]
+        self.train_entries = sorted(entries[cfg.data.holdout :], key=lambda e: e.name)
+        if cfg.data.limit:
+            self.train_entries = self.train_entries[: cfg.data.limit]
+            self.holdout_entries = self.holdout_entries[: max(1, min(cfg.data.holdout, cfg.data.limit))]
+
+    # -- logging -------------------------------------------------------------------------
+    def log(self, msg: str) -> None:
+        line = f"{time.strftime('%Y-%m-%d %H:%M:%S')} {msg}"
+        with open(self.out / "train.log", "a") as fh:
+            fh.write(line + "\n")
+        if self.log_to_stderr and not self.progress:
+            print(line, file=sys.stderr, flush=True)
+
+    def _csv(self, row: dict) -> None:
+        path = self.out / "metrics.csv"
+        cols = ["kind", "step", "elapsed_s", "loss", "bce", "surface", "lr", "skipped", "config", "iou_nkf",
+                "iou_splines"]
+        new = not path.exists()
+        with open(path, "a", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=cols)
+            if new:
+                w.writeheader()
+            w.writerow({c: row.get(c, "") for c in cols})
+
+    # -- data ----------------------------------------------------------------------------
+    def load_data(self) -> None:
+        from .examples import build_cache
+
+        cache = Path(self.cfg.data.cache)
+        self.log(f"cache: {cache} ({len(self.train_entries)} training meshes, {len(self.holdout_entries)} held out)")
+        wn_device = self.device if self.device != "cpu" else None
+        self.train_samples = build_cache(self.train_entries, cache, self.cfg.cache, progress=self.progress,
+                                         device=wn_device)
+        self.holdout_samples = build_cache(self.holdout_entries, cache, self.cfg.cache, progress=self.progress,
+                                           device=wn_device)
+        from . import corpus
+        from .examples import validation_example
+
+        self.val_examples = []
+        for e, s in zip(self.holdout_entries, self.holdout_samples):
+            for vc in self.cfg.validation:
+                seed = corpus.stable_seed("holdout-val", e.name, vc["points"], vc["noise"], vc["half"])
+                ex = validation_example(s, int(vc["points"]), float(vc["noise"]), bool(vc["half"]), seed)
+                self.val_examples.append((self._vc_name(vc), ex))
+
+    @staticmethod
+    def _vc_name(vc) -> str:
+        return f"{vc['points']}{'-half' if vc['half'] else ''}-noise{vc['noise']:g}"
+
+    # -- checkpoints ---------------------------------------------------------------------
+    def checkpoint_path(self) -> Path:
+        return self.out / "checkpoint.pt"
+
+    def save_checkpoint(self) -> None:
+        import torch
+
+        state = {
+            "model": self.net.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "step": self.step,
+            "best": self.best,
+            "elapsed": self.elapsed,
+            "config": json.dumps(self.cfg.to_dict(), sort_keys=True),
+        }
+        tmp = self.checkpoint_path().with_suffix(".tmp")
+        torch.save(state, tmp)
+        tmp.replace(self.checkpoint_path())
+
+    def load_checkpoint(self) -> bool:
+        import torch
+
+        path = self.checkpoint_path()
+        if not path.exists():
+            return False
+        state = torch.load(path, map_location=self.device, weights_only=True)
+        if state["config"] != json.dumps(self.cfg.to_dict(), sort_keys=True):
+            raise ValueError(
+                f"{path} was written with a different config; start a new --out folder or restore the config"
+            )
+        self.net.load_state_dict(state["model"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.step = int(state["step"])
+        self.best = float(state["best"])
+        self.elapsed = float(state["elapsed"])
+        return True
+
+    # -- schedule ------------------------------------------------------------------------
+    def progress_fraction(self) -> float:
+        """How far the run is: the larger of steps done and wall time used, as fractions."""
+        t = self.cfg.train
+        p = self.step / max(1, t.steps)
+        if t.budget_minutes > 0:
+            p = max(p, self.elapsed / (60.0 * t.budget_minutes))
+        return p
+
+    def lr_at(self, step: int) -> float:
+        t = self.cfg.train
+        if step < t.warmup:
+            return t.lr * (step + 1) / t.warmup
+        p = self.progress_fraction()
+        lo = t.final_lr_fraction
+        return t.lr * (lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * min(1.0, p))))
+
+    # -- one step ------------------------------------------------------------------------
+    def train_step(self) -> dict:
+        import torch
+
+        from .differentiable_fit import IllConditionedError
+        from .examples import make_example
+
+        rng = np.random.default_rng([self.cfg.train.seed, self.step])
+        lr = self.lr_at(self.step)
+        for gparam in self.opt.param_groups:
+            gparam["lr"] = lr * gparam.get("scale", 1.0)
+        self.net.train()
+        self.opt.zero_grad(set_to_none=True)
+        b = self.cfg.train.batch
+        parts = {"loss": 0.0, "bce": 0.0, "surface": 0.0}
+        used = 0
+        skipped = 0
+        for _ in range(b):
+            ex = make_example(self.train_samples[int(rng.integers(len(self.train_samples)))], rng, self.cfg.augment)
+            try:
+                loss, p = example_loss(self.net, ex, self.cfg.fit, device=self.device)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError("non-finite loss")
+                (loss / b).backward()
+            except (IllConditionedError, FloatingPointError) as exc:
+                skipped += 1
+                self.log(f"step {self.step}: skipped an example ({type(exc).__name__}: {exc})")
+                continue
+            used += 1
+            parts["loss"] += float(loss.detach())
+            parts["bce"] += p["bce"]
+            parts["surface"] += p["surface"]
+        ok = used > 0
+        if ok:
+            grads = [p.grad for p in self.net.parameters() if p.grad is not None]
+            finite = all(bool(torch.isfinite(g).all()) for g in grads)
+            if finite:
+                torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.cfg.train.grad_clip)
+                self.opt.step()
+            else:
+                skipped += used
+                self.log(f"step {self.step}: non-finite gradient, update skipped")
+        out = {k: v / max(1, used) for k, v in parts.items()}
+        out.update(lr=lr, skipped=skipped)
+        return out
+
+    # -- validation ----------------------------------------------------------------------
+    def validate(self, baseline: bool = False) -> dict:
+        """Mean IoU per validation setting (learned kernel, or the data-free one)."""
+        import torch
+
+        self.net.eval()
+        per: dict = {}
+        with torch.no_grad():
+            for name, ex in self.val_examples:
+                f = example_field(self.net, ex, self.cfg.fit.lam, ex.queries, use_features=not baseline,
+                                  device=self.device)
+                per.setdefault(name, []).append(field_iou(f.cpu().numpy(), ex.queries, ex.occupancy))
+        return {k: float(np.mean(v)) for k, v in per.items()}
+
+    # -- the loop ------------------------------------------------------------------------
+    def run(self, resume: bool = False, max_steps: int | None = None, stop_after_s: float | None = None) -> dict:
+        """Train until the config's steps or budget, ``max_steps`` more steps, or ``stop_after_s``
+        seconds of this session (then validate and checkpoint, so that ``resume=True`` continues)."""
+        from tqdm import tqdm
+
+        from ..kernel.weights import save_weights
+
+        t = self.cfg.train
+        resumed = resume and self.load_checkpoint()
+        self.log(
+            (f"resumed at step {self.step}" if resumed else "new run")
+            + f"; device {self.device}, {platform.processor() or platform.machine()}, "
+            f"{os.cpu_count()} cores, torch threads {t.threads}"
+        )
+        if not resumed:
+            self.log("config " + json.dumps(self.cfg.to_dict(), sort_keys=True))
+        self.load_data()
+        base_path = self.out / "baseline.json"
+        if base_path.exists():
+            baseline = json.loads(base_path.read_text())
+        else:
+            baseline = self.validate(baseline=True)
+            base_path.write_text(json.dumps(baseline, indent=1))
+            for k, v in baseline.items():
+                self._csv({"kind": "val", "step": 0, "config": k, "iou_splines": v})
+        self.log("neural splines on the held-out meshes: " + ", ".join(f"{k} {v:.4f}" for k, v in baseline.items()))
+        end = t.steps if max_steps is None else min(t.steps, self.step + max_steps)
+        t_wall = time.perf_counter()
+        deadline = None if stop_after_s is None else t_wall + stop_after_s
+        bar = tqdm(total=t.steps, initial=self.step, disable=not self.progress, desc="train", unit="step",
+                   dynamic_ncols=True)
+        window: list = []
+        last_val = None
+        try:
+            while self.step < end and self.progress_fraction() < 1.0 and not (
+                    deadline is not None and time.perf_counter() >= deadline):
+                r = self.train_step()
+                now = time.perf_counter()
+                self.elapsed += now - t_wall  # wall time, validation and checkpoints included
+                t_wall = now
+                self.step += 1
+                out_of_time = deadline is not None and now >= deadline
+                last = self.step >= end or self.progress_fraction() >= 1.0 or out_of_time
+                window.append(r["loss"])
+                window = window[-50:]
+                self._csv({"kind": "train", "step": self.step, "elapsed_s": f"{self.elapsed:.1f}",
+                           "loss": f"{r['loss']:.5f}", "bce": f"{r['bce']:.5f}", "surface": f"{r['surface']:.5f}",
+                           "lr": f"{r['lr']:.3g}", "skipped": r["skipped"]})
+                bar.update(1)
+                bar.set_postfix(loss=f"{np.mean(window):.4f}", val=last_val or "-")
+                if self.step % 50 == 0:
+                    self.log(f"step {self.step}: loss {np.mean(window):.4f} (mean of last {len(window)}), "
+                             f"lr {r['lr']:.3g}, constant feature {self.net.constant_feature():.3f}, "
+                             f"{self.elapsed / 60:.1f} min")
+                if self.step % t.val_every == 0 or last:
+                    tv = time.perf_counter()
+                    val = self.validate()
+                    mean = float(np.mean(list(val.values())))
+                    for k, v in val.items():
+                        self._csv({"kind": "val", "step": self.step, "elapsed_s": f"{self.elapsed:.1f}",
+                                   "config": k, "iou_nkf": f"{v:.5f}", "iou_splines": f"{baseline[k]:.5f}"})
+                    self.log(f"step {self.step}: validation IoU " + ", ".join(
+                        f"{k} {v:.4f} (splines {baseline[k]:.4f})" for k, v in val.items())
+                        + f"; mean {mean:.4f} vs {np.mean(list(baseline.values())):.4f} "
+                        f"[{time.perf_counter() - tv:.0f} s]")
+                    last_val = f"{mean:.4f}"
+                    if mean > self.best:
+                        self.best = mean
+                        save_weights(self.out / "nkf.safetensors", self.net, lam=self.cfg.fit.lam,
+                                     training=self.summary(val, baseline))
+                        self.log(f"step {self.step}: best so far, wrote {self.out / 'nkf.safetensors'}")
+                if self.step % t.checkpoint_every == 0 or last:
+                    self.save_checkpoint()
+                now = time.perf_counter()
+                self.elapsed += now - t_wall
+                t_wall = now
+        finally:
+            bar.close()
+        try:
+            plot_curves(self.out)
+        except ImportError:
+            self.log("matplotlib is not installed (the 'train' extra); no curves.png")
+        self.log(f"stopped at step {self.step} after {self.elapsed / 60:.1f} min of training; "
+                 f"best mean IoU {self.best:.4f}")
+        return {"step": self.step, "best": self.best, "elapsed_s": self.elapsed}
+
+    def summary(self, val: dict, baseline: dict) -> dict:
+        import torch
+
+        return {
+            "step": self.step,
+            "elapsed_s": round(self.elapsed, 1),
+            "device": self.device,
+            "machine": f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}",
+            "holdout_iou": {k: round(v, 5) for k, v in val.items()},
+            "holdout_iou_splines": {k: round(v, 5) for k, v in baseline.items()},
+            "config": self.cfg.to_dict(),
+        }
+
+
+def plot_curves(out: Path) -> Path:
+    """Draw ``curves.png`` (training loss and validation IoU) from ``metrics.csv`` in ``out``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = list(csv.DictReader(open(Path(out) / "metrics.csv")))
+    tr = [(int(r["step"]), float(r["loss"])) for r in rows if r["kind"] == "train" and r["loss"]]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    if tr:
+        s, l_ = np.array(tr).T
+        k = min(100, max(1, len(l_) // 20))
+        smooth = np.convolve(l_, np.ones(k) / k, mode="valid")
+        ax1.plot(s, l_, color="0.8", lw=0.5, label="per step")
+        ax1.plot(s[k - 1 :], smooth, color="C0", label=f"mean of {k}")
+        ax1.set_yscale("log")
+    ax1.set_xlabel("step")
+    ax1.set_ylabel("training loss")
+    ax1.legend()
+    val = [r for r in rows if r["kind"] == "val"]
+    names = sorted({r["config"] for r in val})
+    for i, name in enumerate(names):
+        pts = [(int(r["step"]), float(r["iou_nkf"])) for r in val if r["config"] == name and r["iou_nkf"]]
+        base = [float(r["iou_splines"]) for r in val if r["config"] == name and r["iou_splines"]]
+        if pts:
+            s, v = np.array(pts).T
+            ax2.plot(s, v, "o-", color=f"C{i}", label=f"nkf {name}")
+        if base:
+            ax2.axhline(base[0], color=f"C{i}", ls="--", lw=0.8)
+    ax2.set_xlabel("step")
+    ax2.set_ylabel("held-out IoU (dashed: splines)")
+    ax2.legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(out) / "curves.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main(args) -> int:
+    """Entry point of ``nkf train`` (arguments parsed by :mod:`nkf_model.cli`)."""
+    from ..errors import NKFInputError
+
+    try:
+        cfg = load_config(args.config)
+    except FileNotFoundError:
+        raise NKFInputError(f"training config {args.config} does not exist") from None
+    except (OSError, ValueError, TypeError) as exc:  # tomllib.TOMLDecodeError is a ValueError
+        raise NKFInputError(f"training config {args.config}: {exc}") from None
+    out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
+    if (out / "checkpoint.pt").exists() and not args.resume:
+        raise NKFInputError(f"{out} already holds a run; pass --resume to continue it, or choose another --out")
+    if args.resume and not (out / "checkpoint.pt").exists():
+        raise NKFInputError(f"--resume: {out} holds no checkpoint.pt to resume from")
+    tr = Trainer(cfg, out, progress=not args.quiet)
+    try:
+        stop = None if getattr(args, "stop_after", None) is None else 60.0 * args.stop_after
+        res = tr.run(resume=args.resume, max_steps=args.max_steps, stop_after_s=stop)
+    except ValueError as exc:  # a checkpoint written with another config
+        raise NKFInputError(str(exc)) from None
+    print(f"{out / 'nkf.safetensors'}: best held-out mean IoU {res['best']:.4f} after {res['step']} steps "
+          f"({res['elapsed_s'] / 60:.1f} min)")
+    return 0
