@@ -20,8 +20,8 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from nkf_model.normals.estimate import estimate_normals
 
+from nkf_model.normals.estimate import estimate_normals
 from nkf_model.pipeline.reconstruct import reconstruct
 from nkf_model.train import corpus, metrics
 

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nkf_model.options import SCAN_MIN_PIECE, SCAN_TRIM
 from nkf_model.pipeline.reconstruct import DEFAULT_REDUCE_TO, reconstruct
-from nkf_model.surface.trim import SCAN_MIN_PIECE, SCAN_TRIM
 from nkf_model.train import corpus, metrics
 
 from . import scenes

@@ -7,12 +7,23 @@ NumPy in, NumPy out; no Blender needed. The main entry point is :func:`reconstru
     mesh.vertices  # (V, 3) float32, in the input's frame
     mesh.faces     # (F, 3) int32, facing out
 
-``method="splines"`` is the data-free Neural Splines kernel (Williams et al., CVPR 2021).
+``method="splines"`` is the data-free Neural Splines kernel (Williams et al., CVPR 2021). The
+settings are one :class:`Options` object (``nkf_model.options``: defaults, ranges, messages).
+
+``import nkf_model`` loads only the standard-library parts (settings, errors); the reconstruction
+code and its compiled dependencies (SciPy, scikit-image, numba, PyTorch) load on first use of
+:func:`reconstruct`, :func:`estimate`, :class:`Mesh` and the other names below. The stages live in
+subpackages: ``points``, ``normals``, ``kernel``, ``fit``, ``surface``, ``pipeline``, ``io``
+(``docs/architecture.md``); ``train`` holds the training of the learned kernel.
 """
+
+from importlib import import_module
 
 from .errors import (
     Cancelled,
     DegenerateInputError,
+    DeviceWarning,
+    InputWarning,
     InvalidParameterError,
     InvalidPointCloudError,
     MemoryBudgetError,
@@ -25,17 +36,40 @@ from .errors import (
     TooFewPointsError,
     WeightsError,
 )
-from .kernel.weights import method_available
-from .normals.estimate import estimate_normals
-from .pipeline.budget import Estimate, estimate
-from .pipeline.device_fallback import DeviceWarning
-from .pipeline.reconstruct import METHODS, InputWarning, reconstruct
-from .surface.mesh import Mesh
+from .options import SETTINGS, Options
 
 __version__ = "0.1.0"
 
+METHODS = SETTINGS[0].values  # ("splines", "nkf")
+
+# Public names whose modules load on first use: name -> module that defines it.
+_LAZY = {
+    "reconstruct": ".pipeline.reconstruct",
+    "estimate": ".pipeline.budget",
+    "Estimate": ".pipeline.budget",
+    "Mesh": ".surface.mesh",
+    "estimate_normals": ".normals.estimate",
+    "method_available": ".kernel.weights",
+}
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'nkf_model' has no attribute {name!r}")
+    value = getattr(import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
+
+
 __all__ = [
     "reconstruct",
+    "Options",
+    "SETTINGS",
     "Mesh",
     "METHODS",
     "InputWarning",

@@ -14,26 +14,9 @@ import threading
 import time
 import warnings
 
-import numpy as np
-
 from . import __version__
 from .errors import Cancelled, MissingNormalsError, NKFInputError
-from .io.files import check_output_path, read_point_cloud, write_mesh
-from .normals.estimate import ORIENTATIONS
-from .pipeline.reconstruct import (
-    DEFAULT_CENTRES,
-    DEFAULT_LAM,
-    DEFAULT_METHOD,
-    DEFAULT_REDUCE_TO,
-    DEFAULT_RESOLUTION,
-    METHODS,
-    NORMALS_MODES,
-    SOLVERS,
-    check_scan_settings,
-    check_settings,
-)
-from .surface.evaluate import MAX_RESOLUTION, MIN_RESOLUTION
-from .surface.trim import SCAN_MIN_PIECE, SCAN_TRIM
+from .options import SCAN_MIN_PIECE, SCAN_TRIM, SETTING, Options
 
 EXIT_INPUT = 1
 EXIT_INTERNAL = 3
@@ -55,22 +38,24 @@ def _parser() -> argparse.ArgumentParser:
     )
     r.add_argument("input", help="PLY point cloud (ASCII or binary) with x y z, optionally nx ny nz and red green blue")
     r.add_argument("output", help="mesh to write: .ply (binary) or .obj")
-    r.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
-                   help=f"kernel: 'splines' (data-free Neural Splines) or 'nkf' (learned); default {DEFAULT_METHOD}")
-    r.add_argument("--lam", type=float, default=DEFAULT_LAM,
-                   help=f"regularisation lambda per constraint, >= 0 (default {DEFAULT_LAM:g}); larger is smoother")
-    r.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
-                   help=f"grid cells per side, {MIN_RESOLUTION}-{MAX_RESOLUTION} (default {DEFAULT_RESOLUTION})")
-    r.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+    method, lam, res = SETTING["method"], SETTING["lam"], SETTING["resolution"]
+    r.add_argument("--method", choices=method.values, default=method.default,
+                   help=f"kernel: 'splines' (data-free Neural Splines) or 'nkf' (learned); default {method.default}")
+    r.add_argument("--lam", type=float, default=lam.default,
+                   help=f"regularisation lambda per constraint, >= 0 (default {lam.default:g}); larger is smoother")
+    r.add_argument("--resolution", type=int, default=res.default,
+                   help=f"grid cells per side, {res.low}-{res.high} (default {res.default})")
+    r.add_argument("--device", choices=SETTING["device"].values, default=SETTING["device"].default,
                    help="where the kernel runs; 'auto' uses a CUDA GPU when present (default auto)")
     r.add_argument("--max-points", type=int, default=None, metavar="N",
                    help="use a random subset of at most N points (said on stderr when it applies)")
-    r.add_argument("--seed", type=int, default=0, help="seed for --max-points and solver centres (default 0)")
+    r.add_argument("--seed", type=int, default=SETTING["seed"].default,
+                   help="seed for --max-points and solver centres (default 0)")
     s = r.add_argument_group("scans (unoriented, large, open or coloured point clouds)")
-    s.add_argument("--normals", choices=NORMALS_MODES, default="auto",
+    s.add_argument("--normals", choices=SETTING["normals_mode"].values, default=SETTING["normals_mode"].default,
                    help="'given': use the file's nx ny nz (required); 'estimate': estimate them (PCA and "
                         "orientation); 'auto': given if the file has them, else estimate (default)")
-    s.add_argument("--orient", choices=ORIENTATIONS, default=None,
+    s.add_argument("--orient", choices=SETTING["orientation"].values, default=None,
                    help="orientation of estimated normals: 'outward' (closed objects, default), 'up' "
                         "(terrain, aerial scans), 'viewpoint' (towards --viewpoint; default when one is given)")
     s.add_argument("--viewpoint", type=float, nargs=3, action="append", metavar=("X", "Y", "Z"),
@@ -86,10 +71,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="cap the surface where it meets the grid's bounds, for a watertight mesh")
     s.add_argument("--no-colors", action="store_true",
                    help="do not carry the points' red green blue onto the mesh (carried when present)")
-    s.add_argument("--reduce-to", type=int, default=DEFAULT_REDUCE_TO, metavar="N",
+    reduce_to = SETTING["reduce_to"].default
+    s.add_argument("--reduce-to", type=int, default=reduce_to, metavar="N",
                    help=f"reduce larger inputs to at most N points by voxel-grid averaging "
-                        f"(default {DEFAULT_REDUCE_TO:,}; 0: never)")
-    s.add_argument("--solver", choices=SOLVERS, default="auto",
+                        f"(default {reduce_to:,}; 0: never)")
+    s.add_argument("--solver", choices=SETTING["solver"].values, default=SETTING["solver"].default,
                    help="'auto' (default): exact up to 3,000 points, else partition of unity; "
                         "'falkon': Nystrom centres")
     s.add_argument("--memory-budget", type=float, default=None, metavar="GB",
@@ -137,73 +123,68 @@ def _progress_bar(quiet: bool):
     return progress, bar.close
 
 
-def _scan_settings(args):
-    """trim, min_piece, reduce_to and memory budget (bytes) from the command line."""
-    trim = args.trim if args.trim is not None else (SCAN_TRIM if args.scan else None)
-    min_piece = args.min_piece if args.min_piece is not None else (SCAN_MIN_PIECE if args.scan else 0.0)
-    reduce_to = None if args.reduce_to == 0 else args.reduce_to
-    budget = None if args.memory_budget is None else args.memory_budget * 2**30
+def options_from_args(args) -> Options:
+    """The :class:`~nkf_model.options.Options` of ``nkf reconstruct``'s command line (validated)."""
     if args.memory_budget is not None and not args.memory_budget > 0:
         raise NKFInputError(f"--memory-budget must be a positive number of gigabytes, got {args.memory_budget}")
-    return trim, min_piece, reduce_to, budget
+    if args.max_points is not None and args.max_points < 10:
+        raise NKFInputError(f"--max-points must be at least 10, got {args.max_points}")
+    return Options(
+        method=args.method, lam=args.lam, resolution=args.resolution, device=args.device,
+        max_points=args.max_points, seed=args.seed, normals_mode=args.normals, orientation=args.orient,
+        trim=args.trim if args.trim is not None else (SCAN_TRIM if args.scan else None),
+        min_piece=args.min_piece if args.min_piece is not None else (SCAN_MIN_PIECE if args.scan else 0.0),
+        close=args.close, reduce_to=None if args.reduce_to == 0 else args.reduce_to, solver=args.solver,
+        memory_budget=None if args.memory_budget is None else args.memory_budget * 2**30, weights=args.weights,
+    )
 
 
 def cmd_reconstruct(args) -> int:
-    from .pipeline import budget as budget_mod
+    from .io.files import check_output_path, read_point_cloud, write_mesh
+    from .pipeline import budget
     from .pipeline.reconstruct import reconstruct
 
-    check_settings(args.method, args.lam, args.resolution, args.device, None, DEFAULT_CENTRES)
-    trim, min_piece, reduce_to, memory_budget = _scan_settings(args)
-    check_scan_settings("auto", None, args.solver, reduce_to, trim, min_piece)
-    if args.max_points is not None and args.max_points < 10:
-        raise NKFInputError(f"--max-points must be at least 10, got {args.max_points}")
+    opts = options_from_args(args)
     out = check_output_path(args.output)
-    if args.method == "nkf":
+    if opts.method == "nkf":
         from .kernel.weights import load_weights
 
-        load_weights(args.weights)  # a bad weights file fails before the input is read
+        load_weights(opts.weights)  # a bad weights file fails before the input is read
     t0 = time.perf_counter()
     cloud = read_point_cloud(args.input)
-    if args.normals == "given" and cloud.normals is None:
+    if opts.normals_mode == "given" and cloud.normals is None:
         raise MissingNormalsError(
             f"{args.input}: the points have no normals (nx ny nz); normals are required with "
             f"--normals given (use --normals auto or estimate to estimate them)"
         )
-    estimate_n = args.normals == "estimate" or cloud.normals is None
+    estimate_n = opts.normals_mode == "estimate" or cloud.normals is None
+    opts = opts.replace(normals_mode="estimate" if estimate_n else "given")
     points, normals = cloud.points, (None if estimate_n else cloud.normals)
     colors = None if args.no_colors else cloud.colors
     if len(points) == 0:
         raise NKFInputError(f"{args.input}: the file holds no points")
     t_read = time.perf_counter() - t0
-    if args.max_points is not None and len(points) > args.max_points:
-        keep = np.sort(np.random.default_rng(args.seed).choice(len(points), args.max_points, replace=False))
-        _say(f"using a random {args.max_points:,} of {len(points):,} points (--max-points)")
-        points = points[keep]
-        normals = None if normals is None else normals[keep]
-        colors = None if colors is None else colors[keep]
-    est = budget_mod.plan(len(points), resolution=args.resolution, estimate_normals=estimate_n, solver=args.solver,
-                          max_centres=DEFAULT_CENTRES, reduce_to=reduce_to, colors=colors is not None,
-                          trim=trim is not None, method=args.method)
+    n_used = len(points)
+    if opts.max_points is not None and len(points) > opts.max_points:
+        n_used = opts.max_points
+        _say(f"using a random {opts.max_points:,} of {len(points):,} points (--max-points)")
+    est = budget.plan_for(len(points), opts, estimate_normals=estimate_n, colors=colors is not None)
     if args.dry_run:
-        print(f"{args.input}: {len(points):,} points; estimate: {est.summary()}")
-        budget_mod.check(est, memory_budget)
+        print(f"{args.input}: {n_used:,} points; estimate: {est.summary()}")
+        budget.check(est, opts.memory_budget)
         return 0
     if estimate_n and args.normals == "auto":
         _say(f"{args.input} has no normals: estimating them (--normals auto)")
     if est.reduced:
-        _say(f"{len(points):,} points: reducing to at most {reduce_to:,} by voxel-grid averaging (--reduce-to)")
+        _say(f"{n_used:,} points: reducing to at most {opts.reduce_to:,} by voxel-grid averaging (--reduce-to)")
 
     progress, close = _progress_bar(args.quiet)
     cancel = threading.Event()
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            mesh = reconstruct(points, normals, method=args.method, lam=args.lam, resolution=args.resolution,
-                               device=args.device, progress=progress, cancel=cancel, seed=args.seed,
-                               normals_mode="estimate" if estimate_n else "given", orientation=args.orient,
-                               viewpoints=args.viewpoint, colors=colors, trim=trim, min_piece=min_piece,
-                               reduce_to=reduce_to, solver=args.solver, memory_budget=memory_budget,
-                               weights=args.weights, close=args.close)
+            mesh = reconstruct(points, normals, options=opts, progress=progress, cancel=cancel,
+                               viewpoints=args.viewpoint, colors=colors)
     finally:
         close()
     for w in caught:

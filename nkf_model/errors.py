@@ -1,4 +1,4 @@
-"""Exceptions raised by :mod:`nkf_model`.
+"""Exceptions raised and warnings issued by :mod:`nkf_model` (standard library only).
 
 Every failure a caller can cause is an :class:`NKFInputError` (a ``ValueError``) with a message
 written for the person who gave the input. :class:`Cancelled` is raised when a ``cancel`` event
@@ -61,3 +61,11 @@ class WeightsError(NKFInputError):
 
 class DefaultWeightsMissingError(WeightsError, MethodUnavailableError):
     """``method="nkf"`` was asked for without a weights file, and the package ships none."""
+
+
+class InputWarning(UserWarning):
+    """Some input rows were dropped (NaN, infinite, zero-length normals, duplicates)."""
+
+
+class DeviceWarning(UserWarning):
+    """The GPU could not be used (out of memory); the work was done on the CPU instead."""

@@ -15,7 +15,7 @@ from nkf_model.kernel.feature_net import (
     sample_grid_torch,
 )
 from nkf_model.kernel.learned_kernel import _gated_trilinear
-from nkf_model.surface.evaluate import GRID_HALF
+from nkf_model.points.normalise import GRID_HALF
 
 
 def _cloud(n=300, seed=0):

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from nkf_helpers import tiny_weights
-from nkf_model.pipeline.reconstruct import DEFAULT_METHOD
 from shapes import sphere_points
 
 import nkf_model
@@ -13,6 +12,7 @@ from nkf_model.cli import main
 from nkf_model.errors import WeightsError
 from nkf_model.io.files import read_mesh
 from nkf_model.kernel.weights import has_default_weights
+from nkf_model.pipeline.reconstruct import DEFAULT_METHOD
 from nkf_model.train.metrics import chamfer_l1, sample_surface
 
 
@@ -150,6 +150,7 @@ def test_dense_clean_input_fades_the_learned_features(tmp_path):
     # Above the training sizes (NKF_TRAINED_POINTS) the learned features are kept in proportion to the
     # estimated noise: clean dense input gets (almost) none, noisy dense input all, small input all.
     from nkf_helpers import box_mesh
+
     from nkf_model.pipeline.reconstruct import NKF_TRAINED_POINTS
 
     w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)

@@ -87,6 +87,7 @@ def test_reconstruct_reports_the_local_regularisation():
 
 def test_the_learned_kernel_scales_the_local_regularisation_to_its_magnitude(tmp_path):
     from nkf_helpers import tiny_weights
+
     from nkf_model.pipeline.reconstruct import NKF_NOISE_LAM_FACTOR
 
     p, n = _sphere(8000, 0.005, seed=4)

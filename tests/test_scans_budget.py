@@ -35,7 +35,7 @@ def test_learned_kernel_estimate_is_slower(tmp_path):
     # measured by the benchmarks, docs/scans.md).
     from nkf_helpers import tiny_weights
 
-    s = nkf_model.estimate(100_000, resolution=256)
+    s = nkf_model.estimate(100_000, resolution=256, method="splines")
     n = nkf_model.estimate(100_000, resolution=256, method="nkf")
     assert n.seconds > 2 * s.seconds and n.peak_bytes > s.peak_bytes
     w = tiny_weights(tmp_path / "w.safetensors", gate=0.2)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from nkf_model.pipeline.reconstruct import choose_solver
 from scan_shapes import box_points
 from shapes import sphere_points, torus_distance, torus_points
 
@@ -13,6 +12,7 @@ from nkf_model.fit.augment import augment, default_eps
 from nkf_model.fit.partition_of_unity import fit_pou, patch_spacing
 from nkf_model.kernel.engines import TorchEngine, cpu_engine
 from nkf_model.kernel.neural_spline import homogeneous
+from nkf_model.pipeline.budget import choose_solver
 from nkf_model.points.normalise import Normalisation
 from nkf_model.points.voxel_reduce import voxel_for_count, voxel_reduce
 

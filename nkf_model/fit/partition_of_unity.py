@@ -36,8 +36,8 @@ from ..kernel._numba_kernels import ACUTE_MIN_LAST
 from ..kernel.engines import Engine, NumbaEngine
 from ..kernel.neural_spline import homogeneous, split_unit
 from ..points.farthest_point import farthest_point_sample
+from ..points.normalise import GRID_HALF
 from ..points.winding import FarField, follow_winding, winding_scale
-from ..surface.evaluate import GRID_HALF
 from . import _pou_kernels as pk
 from .solve import KernelFunction, solve_dense
 

@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..surface.evaluate import GRID_HALF
+from ..points.normalise import GRID_HALF
 
 
 @dataclass(frozen=True)

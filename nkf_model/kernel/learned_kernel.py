@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from ..surface.evaluate import GRID_HALF
+from ..points.normalise import GRID_HALF
 from .feature_net import FeatureNet, sample_grid_numpy
 from .neural_spline import homogeneous
 

@@ -67,6 +67,8 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components, mini
 from scipy.spatial import cKDTree
 
 from ..errors import InvalidParameterError
+from . import sign_check
+from .edges import SIG_NOISE, WINDING_EXCLUDE, across_significant, edge_relation
 
 DEFAULT_K = 16  # neighbours for the PCA fit
 DEFAULT_GRAPH_K = 10  # neighbours per point in the orientation graph
@@ -200,13 +202,6 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
     return normals, residual
 
 
-def _across_significant(across, length, i, j, noise):
-    """Whether an edge's offset along the normals stands out of the noise (:data:`SIG_NOISE`)."""
-    if noise is None:
-        return np.ones(len(across), dtype=bool)
-    return 0.5 * across * length > SIG_NOISE * np.maximum(noise[i], noise[j])
-
-
 def _graph(points, normals, tree, k, check: Check, noise=None):
     """Symmetric k-nearest-neighbour graph with orientation costs as a sparse matrix."""
     n = len(points)
@@ -228,7 +223,7 @@ def _graph(points, normals, tree, k, check: Check, noise=None):
         # Along the surface (offset in both tangent planes) or straight across a thin plate or gap
         # (offset along both normals): either is a confident edge; anything between is not. An
         # offset along the normals within the noise is noise: the edge runs along the surface.
-        sig = _across_significant(across, d, i, j, noise)
+        sig = across_significant(across, d, i, j, noise)
         c = (1.0 - cos) + np.where(sig, np.minimum(across, 2.0 - across), 0.3 * across)
         rows.append(i)
         cols.append(j)
@@ -258,27 +253,6 @@ except ImportError:  # pragma: no cover - numba is a declared dependency
             if pred[v] >= 0:
                 sign[v] = sign[pred[v]] * relation[v]
         return sign
-
-
-def edge_relation(points, normals, i, j, noise=None) -> np.ndarray:
-    """For edges ``(i, j)``: +1 if the estimated normals keep their relative sign, -1 if one flips.
-
-    Along the surface (the offset lies in both tangent planes) they agree; straight across a thin
-    plate or a narrow gap (the offset runs along both normals) the outward normals point opposite
-    ways; at a sharp edge (normals more than 60 degrees apart) the edge is taken as convex, each
-    normal pointing away from the other point. ``noise`` (N,), the points' plane-fit residuals:
-    offsets along the normals within :data:`SIG_NOISE` of them do not count as "across".
-    """
-    off = points[j] - points[i]
-    length = np.linalg.norm(off, axis=1)
-    off = off / np.maximum(length, 1e-300)[:, None]
-    dot = np.sum(normals[i] * normals[j], axis=1)
-    a = np.sum(normals[i] * off, axis=1)
-    b = np.sum(normals[j] * off, axis=1)
-    across = (np.abs(a) + np.abs(b) > 1.0) & _across_significant(np.abs(a) + np.abs(b), length, i, j, noise)
-    smooth = np.where(dot >= 0, 1.0, -1.0) * np.where(across, -1.0, 1.0)
-    convex = -np.where(a >= 0, 1.0, -1.0) * np.where(b >= 0, 1.0, -1.0)
-    return np.where(np.abs(dot) >= 0.5, smooth, convex)
 
 
 def fibonacci_directions(n: int, upper_only: bool = False) -> np.ndarray:
@@ -650,13 +624,11 @@ VOTE_WEIGHT = 3.0
 TOL_NOISE = 1.5  # depth tolerance of the views, in noise levels (on top of half a spacing)
 HARMONIC_COST = 0.1  # edges cheaper than this join the global sign fit (_harmonic_signs)
 HARMONIC_SEED = 0.01  # weight of a seed's sign in that fit, against 1 for a confident edge
-SIG_NOISE = 1.5  # offsets along the normals below this many noise levels are noise
 NOISE_QUANTILE = 0.25  # the noise level is this quantile of the points' plane-fit residuals
 SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
 VIEWPOINT_VOTE_WEIGHT = 0.25
 # Winding-number refinement (_winding_signs), chosen on the val meshes (docs/scans.md).
 WINDING_ROUNDS = 10
-WINDING_EXCLUDE = 3.0  # radius left out around each point, in spacings
 WINDING_LAYER_FIELD = 0.08  # field a layer point needs to follow it (|g . n| * spacing)
 WINDING_POINTS = 20_000  # points refined at most (a random subset above)
 # Thin parts (layer_votes, _layer_seeds); measured on the val meshes with thin parts (docs/scans.md).
@@ -729,9 +701,7 @@ def orient_normals(
 def _checked(sign, state, info, learned: bool, check: Check):
     """Oriented normals (N, 3) and ``info``, after the learned sign check where it applies."""
     if learned and info.orientation == "outward":
-        from .sign_check import flip_wrong
-
-        sign, flips = flip_wrong(state, check=check)
+        sign, flips = sign_check.flip_wrong(state, check=check)
         info.learned_check, info.learned_flips = flips is not None, flips or 0
     return state.normals * sign[:, None], info
 
@@ -740,8 +710,6 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     """Signs (N,), the :class:`~nkf_model.normals.sign_check.OrientationState` behind them and the
     :class:`OrientationInfo`: :func:`orient_normals` without the learned check (also used to
     train it)."""
-    from .sign_check import OrientationState
-
     p = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
     vp = check_viewpoints(viewpoints)
@@ -806,9 +774,11 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
         sides = (np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64))
         lv = np.zeros(n)
     res = residual if residual is not None else (noise if noise is not None else np.zeros(n))
-    state = OrientationState(points=p, normals=nrm, sign=sign, votes=votes, weight=weight, view_seed=view_seed,
-                             layer_seed=seed, layer_vote=lv, above=sides[0], below=sides[1], graph=g,
-                             residual=np.asarray(res, dtype=np.float64), spacing=spacing, winding=winding)
+    state = sign_check.OrientationState(
+        points=p, normals=nrm, sign=sign, votes=votes, weight=weight, view_seed=view_seed, layer_seed=seed,
+        layer_vote=lv, above=sides[0], below=sides[1], graph=g, residual=np.asarray(res, dtype=np.float64),
+        spacing=spacing, winding=winding,
+    )
     return sign, state, info
 
 

@@ -26,6 +26,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import WeightsError
+from .edges import WINDING_EXCLUDE, edge_relation
 
 FORMAT = "nkf-sign-check"
 FORMAT_VERSION = "1"
@@ -98,7 +99,6 @@ class OrientationState:
 def point_features(state: OrientationState, check=None) -> np.ndarray:
     """Features (N, len(FEATURES)) float32 of every point, in the order of :data:`FEATURES`."""
     from ..points.winding import FarField, WindingGradient
-    from .estimate import WINDING_EXCLUDE, edge_relation
 
     p, nrm, s, sp = state.points, state.normals, state.sign, state.spacing
     n = len(p)

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass
 
 from ..errors import MemoryBudgetError
 from ..normals.sign_check import MAX_POINTS as SIGN_CHECK_MAX_POINTS
+from ..options import SETTING, Options
 
 # --- fitted constants (reference CPU, 2 threads) ---------------------------------------------
 NODES_PER_R2 = 22.0  # grid points evaluated over all levels, per resolution^2 (objects)
@@ -116,30 +117,43 @@ def default_memory_budget() -> int:
     return int(min(16 * GIB, 0.6 * total))
 
 
+def choose_solver(n_points: int, max_centres: int, solver: str = "auto") -> str:
+    """The solver :func:`nkf_model.reconstruct` uses for ``n_points`` oriented points."""
+    if solver != "auto":
+        return solver
+    return "dense" if 2 * n_points <= max_centres else "pou"
+
+
 def estimate(
     n_points: int,
     *,
-    resolution: int = 128,
+    options: Options | None = None,
     estimate_normals: bool = False,
-    solver: str = "auto",
-    max_centres: int = 6000,
-    reduce_to: int | None = None,
     colors: bool = False,
-    trim: bool = False,
-    method: str = "splines",
+    trim: bool | None = None,
+    **settings,
 ) -> Estimate:
     """Predict what :func:`nkf_model.reconstruct` does with ``n_points`` points and these settings.
 
     Cheap (no data is looked at): meant for a user interface to call whenever a setting changes.
-    ``reduce_to`` defaults to :data:`nkf_model.pipeline.reconstruct.DEFAULT_REDUCE_TO` when not given.
+    The settings are those of :func:`nkf_model.reconstruct` (``options`` and/or keywords, with the
+    same defaults: ``method``, ``resolution``, ``solver``, ``max_centres``, ``reduce_to``,
+    ``max_points``, ...). ``estimate_normals``: the normals will be estimated; ``colors``: colours
+    will be carried; ``trim``: the surface will be trimmed (default: whether ``options`` trims).
     """
-    from .reconstruct import DEFAULT_REDUCE_TO, choose_solver
+    opts = Options.build(options, **settings)
+    return plan_for(n_points, opts, estimate_normals=estimate_normals, colors=colors, trim=trim)
 
-    if reduce_to is None:
-        reduce_to = DEFAULT_REDUCE_TO
-    return plan(n_points, resolution=resolution, estimate_normals=estimate_normals, solver=solver,
-                max_centres=max_centres, reduce_to=reduce_to, colors=colors, trim=trim, method=method,
-                _choose=choose_solver)
+
+def plan_for(n_points: int, opts: Options, *, estimate_normals: bool, colors: bool = False,
+             trim: bool | None = None) -> Estimate:
+    """The estimate for ``n_points`` input points run with ``opts`` (after its ``max_points`` subset)."""
+    n = max(0, int(n_points))
+    if opts.max_points is not None:
+        n = min(n, opts.max_points)
+    return plan(n, resolution=opts.resolution, estimate_normals=estimate_normals, solver=opts.solver,
+                max_centres=opts.max_centres, reduce_to=opts.reduce_to, colors=colors,
+                trim=opts.trim is not None if trim is None else trim, method=opts.method)
 
 
 def plan(
@@ -152,17 +166,14 @@ def plan(
     reduce_to: int | None,
     colors: bool = False,
     trim: bool = False,
-    method: str = "splines",
-    _choose=None,
+    method: str = SETTING["method"].default,
 ) -> Estimate:
     """The estimate for explicit settings (``reduce_to=None``: no reduction; ``method="nkf"``: the
     learned kernel, see :data:`NKF_EVAL_FACTOR`)."""
-    if _choose is None:
-        from .reconstruct import choose_solver as _choose
     n_in = max(0, int(n_points))
     reduced = reduce_to is not None and n_in > reduce_to
     n = min(n_in, reduce_to) if reduced else n_in
-    kind = _choose(n, max_centres, solver)
+    kind = choose_solver(n, max_centres, solver)
     r = int(resolution)
     nodes = NODES_PER_R2 * r * r
 

@@ -12,13 +12,10 @@ import warnings
 from collections.abc import Callable
 from typing import TypeVar
 
+from ..errors import DeviceWarning
 from ..kernel.engines import Engine, cpu_engine
 
 T = TypeVar("T")
-
-
-class DeviceWarning(UserWarning):
-    """The GPU could not be used (out of memory); the work was done on the CPU instead."""
 
 
 def is_device_out_of_memory(exc: BaseException) -> bool:

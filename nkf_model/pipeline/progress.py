@@ -12,24 +12,9 @@ import time
 from collections.abc import Callable
 
 from ..errors import Cancelled
+from .stages import STAGE_WEIGHTS
 
 ProgressFn = Callable[[float, str], None]
-
-# Share of the total wall time each stage takes in a typical run; used to map stage-local
-# progress onto one monotonic fraction.
-STAGE_WEIGHTS = {
-    "normalise": 0.01,
-    "reduce": 0.02,
-    "normals": 0.08,
-    "augment": 0.01,
-    "features": 0.05,
-    "solve": 0.33,
-    "evaluate": 0.50,
-    "mesh": 0.10,
-    "clean": 0.02,
-    "colors": 0.02,
-}
-
 
 class Tracker:
     """Tracks the current stage, reports progress and checks for cancellation.
@@ -38,7 +23,7 @@ class Tracker:
     ----------
     progress:
         ``progress(fraction, stage)`` callback, or ``None``. ``fraction`` is in ``[0, 1]`` and
-        never decreases; ``stage`` is one of the keys of :data:`STAGE_WEIGHTS`.
+        never decreases; ``stage`` is one of the keys of :data:`nkf_model.pipeline.stages.STAGES`.
     cancel:
         Any object with ``is_set() -> bool`` (normally ``threading.Event``), or ``None``.
     stages:

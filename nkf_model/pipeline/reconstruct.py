@@ -1,12 +1,11 @@
 """The whole pipeline: oriented points in, triangle mesh out.
 
 normalise -> augment -> solve -> evaluate -> mesh, each stage in its own module. This module only
-checks settings, wires the stages together and records what each one did.
+takes the settings (:class:`~nkf_model.options.Options`), wires the stages together and records what each one did.
 """
 
 from __future__ import annotations
 
-import math
 import time
 import warnings
 from collections.abc import Callable
@@ -14,44 +13,45 @@ from collections.abc import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ..errors import InvalidParameterError, MissingNormalsError, NoSurfaceError
+from ..errors import InputWarning, MissingNormalsError, NoSurfaceError
 from ..fit.augment import augment, default_eps
 from ..fit.partition_of_unity import fit_pou, patch_spacing
 from ..fit.solve import KernelFunction, SolveInfo, solve_dense, solve_falkon
 from ..kernel.engines import cpu_engine, select_engine
 from ..kernel.neural_spline import homogeneous
-from ..kernel.weights import has_default_weights, load_weights
+from ..kernel.weights import load_weights
 from ..normals.estimate import DEFAULT_K as NORMAL_K
 from ..normals.estimate import check_orientation, check_viewpoints, estimate_normals, median_spacing
+from ..options import SETTING, Options
 from ..points.clean import clean_points
 from ..points.farthest_point import farthest_point_sample
 from ..points.noise import estimate_noise, noise_lam
-from ..points.normalise import Normalisation
+from ..points.normalise import GRID_HALF, Normalisation
+from ..points.subset import random_subset
 from ..points.voxel_reduce import voxel_for_count, voxel_reduce
 from ..points.winding import BlendedField
 from ..surface.colors import as_rgb8, transfer_colors
-from ..surface.evaluate import GRID_HALF, MAX_RESOLUTION, MIN_RESOLUTION, evaluate_sparse
+from ..surface.evaluate import evaluate_sparse
 from ..surface.mesh import Mesh, triangulate, vertex_normals
-from ..surface.trim import check_trim_settings, clean_scan_mesh
+from ..surface.trim import clean_scan_mesh
 from . import budget
 from .device_fallback import run_with_cpu_fallback
 from .progress import Tracker
 
-METHODS = ("splines", "nkf")
-# The learned kernel is the default when the package ships its weights; "splines" needs none.
-DEFAULT_METHOD = "nkf" if has_default_weights() else "splines"
-DEFAULT_LAM = 1e-10
-DEFAULT_RESOLUTION = 128
-# Up to this many constraints (2 per point, so 3,000 points) the solve is exact; beyond it, a partition
-# of unity of small exact solves (nkf_model.fit.partition_of_unity). On 12 validation meshes PoU matched the exact solve
-# at 2,500 and 4,000 points (IoU within 0.005) in less time, and beat Falkon with this many Nystrom
-# centres at 10,000 points (0.901 against 0.893 IoU, 3.5x faster); see docs/benchmarks.md. Falkon
-# stays available as solver="falkon", with max_centres centres.
-DEFAULT_CENTRES = 6000
+METHODS = SETTING["method"].values
+DEFAULT_METHOD = SETTING["method"].default
+DEFAULT_LAM = SETTING["lam"].default
+DEFAULT_RESOLUTION = SETTING["resolution"].default
+# Up to max_centres constraints (2 per point, so 3,000 points) the solve is exact; beyond it, a partition
+# of unity of small exact solves (nkf_model.fit.partition_of_unity). On 12 validation meshes PoU matched
+# the exact solve at 2,500 and 4,000 points (IoU within 0.005) in less time, and beat Falkon with this
+# many Nystrom centres at 10,000 points (0.901 against 0.893 IoU, 3.5x faster); see docs/benchmarks.md.
+# Falkon stays available as solver="falkon", with max_centres centres.
+DEFAULT_CENTRES = SETTING["max_centres"].default
 # Larger inputs are reduced by voxel-grid averaging to at most this many points (docs/scans.md).
-DEFAULT_REDUCE_TO = 300_000
-NORMALS_MODES = ("auto", "given", "estimate")
-SOLVERS = ("auto", "dense", "falkon", "pou")
+DEFAULT_REDUCE_TO = SETTING["reduce_to"].default
+NORMALS_MODES = SETTING["normals_mode"].values
+SOLVERS = SETTING["solver"].values
 # Relative residual at which Falkon's conjugate gradient stops: 1e-6 gave the same IoU and Chamfer as
 # 1e-9 on 12 validation meshes at 10,000 points, in 17 iterations instead of 25.
 FALKON_TOL = 1e-6
@@ -88,60 +88,22 @@ NKF_FEATURE_NOISE = 0.002
 NKF_FEATURE_OFF = 0.01
 
 
-class InputWarning(UserWarning):
-    """Some input rows were dropped (NaN, infinite, zero-length normals, duplicates)."""
-
-
-def check_settings(method, lam, resolution, device, eps, max_centres) -> None:
-    """Raise :class:`InvalidParameterError` for a setting out of range."""
-    if method not in METHODS:
-        raise InvalidParameterError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
-    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)):
-        raise InvalidParameterError(f"resolution must be an integer, got {resolution!r}")
-    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
-        raise InvalidParameterError(
-            f"resolution must be between {MIN_RESOLUTION} and {MAX_RESOLUTION}, got {resolution}"
-        )
-    try:
-        lam_f = float(lam)
-    except (TypeError, ValueError):
-        raise InvalidParameterError(f"lambda must be a number, got {lam!r}") from None
-    if not math.isfinite(lam_f) or lam_f < 0:
-        raise InvalidParameterError(f"lambda must be a finite number >= 0, got {lam!r}")
-    if device not in ("auto", "cpu", "cuda"):
-        raise InvalidParameterError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
-    if eps is not None and not (isinstance(eps, (int, float)) and 0 < eps <= 0.1):
-        raise InvalidParameterError(f"eps must be in (0, 0.1] of the bounding box, got {eps!r}")
-    if isinstance(max_centres, bool) or not isinstance(max_centres, (int, np.integer)) or max_centres < 100:
-        raise InvalidParameterError(f"max_centres must be an integer >= 100, got {max_centres!r}")
-
-
 def reconstruct(
     points,
     normals=None,
     *,
-    method: str = DEFAULT_METHOD,
-    lam: float = DEFAULT_LAM,
-    resolution: int = DEFAULT_RESOLUTION,
-    device: str = "auto",
+    options: Options | None = None,
     progress: Callable[[float, str], None] | None = None,
     cancel=None,
-    eps: float | None = None,
-    max_centres: int = DEFAULT_CENTRES,
-    seed: int = 0,
-    normals_mode: str = "auto",
-    orientation: str | None = None,
     viewpoints=None,
     colors=None,
-    trim: float | None = None,
-    min_piece: float = 0.0,
-    close: bool = False,
-    reduce_to: int | None = DEFAULT_REDUCE_TO,
-    solver: str = "auto",
-    memory_budget: float | None = None,
-    weights=None,
+    **settings,
 ) -> Mesh:
     """Reconstruct a surface from points (oriented or not).
+
+    The settings come as one :class:`~nkf_model.options.Options` (``options=``), as keywords
+    (``method="splines", lam=1e-8``), or both (keywords override ``options``); each is checked
+    against :data:`nkf_model.options.SETTINGS` before any work.
 
     Parameters
     ----------
@@ -164,6 +126,8 @@ def reconstruct(
         position noise ``s`` estimated from the input (unit box; :mod:`nkf_model.points.noise`), reported as
         ``stats["pou"]["patch_lam"]`` (``method="nkf"``: scaled to the learned kernel's magnitude,
         see :data:`NKF_NOISE_LAM_FACTOR`).
+    options : nkf_model.Options, optional
+        All settings below at once; default :class:`~nkf_model.options.Options()`.
     resolution : int
         Cells per side of the marching-cubes grid, 16 to 1024. The grid spans the input's
         bounding box plus 5 % on each side.
@@ -185,7 +149,10 @@ def reconstruct(
         Largest exact solve (in constraints, 2 per point); larger inputs use the partition of unity
         (``solver="auto"``), and ``solver="falkon"`` uses this many Nystrom centres.
     seed : int
-        Seed for the choice of Nystrom centres and of thinned patches.
+        Seed for the ``max_points`` subset, the choice of Nystrom centres and of thinned patches.
+    max_points : int, optional
+        Use a random subset (seeded by ``seed``, kept in input order) of at most this many points
+        (>= 10); ``stats["subset"]`` says when it applied. ``None`` (default) uses all.
     normals_mode : {"auto", "given", "estimate"}
         ``"given"``: ``normals`` are required. ``"estimate"``: ``normals`` are ignored and
         estimated (PCA over 16 neighbours, oriented by :mod:`nkf_model.normals.estimate`). ``"auto"``:
@@ -203,10 +170,10 @@ def reconstruct(
         Cut away the surface farther than ``trim`` point spacings (median nearest-neighbour
         distance; never less than one grid cell) from every input point, for open scans (which
         also turns off the winding-number far field, made for closed surfaces). ``None``
-        (default) keeps the closed surface. Scans: :data:`nkf_model.surface.trim.SCAN_TRIM`.
+        (default) keeps the closed surface. Scans: :data:`nkf_model.options.SCAN_TRIM`.
     min_piece : float
         Remove connected pieces with less than this fraction of the mesh's total area (0 keeps
-        all). Scans: :data:`nkf_model.surface.trim.SCAN_MIN_PIECE`.
+        all). Scans: :data:`nkf_model.options.SCAN_MIN_PIECE`.
     close : bool
         Cap the surface where it runs into the grid's bounds (the input's bounding box plus 5 %), so
         that the mesh is watertight, for example for 3D printing. Off by default: on open or thin
@@ -241,43 +208,49 @@ def reconstruct(
     nkf_model.errors.Cancelled
         ``cancel`` was set.
     """
-    check_settings(method, lam, resolution, device, eps, max_centres)
-    check_scan_settings(normals_mode, normals, solver, reduce_to, trim, min_piece)
-    model = load_weights(weights) if method == "nkf" else None
-    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
-        return _reconstruct(
-            points, normals, method=method, lam=lam, resolution=resolution, device=device, progress=progress,
-            cancel=cancel, eps=eps, max_centres=max_centres, seed=seed, normals_mode=normals_mode,
-            orientation=orientation, viewpoints=viewpoints, colors=colors, trim=trim, min_piece=min_piece,
-            reduce_to=reduce_to, solver=solver, memory_budget=memory_budget, model=model, close=bool(close),
+    opts = Options.build(options, **settings)
+    if opts.normals_mode == "given" and normals is None:
+        raise MissingNormalsError(
+            "normals are required with normals_mode='given': pass one unit normal per point, "
+            "or use normals_mode='auto' to estimate them"
         )
+    model = load_weights(opts.weights) if opts.method == "nkf" else None
+    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        return _reconstruct(points, normals, opts, model=model, progress=progress, cancel=cancel,
+                            viewpoints=viewpoints, colors=colors)
 
 
-def _reconstruct(points, normals, *, method, lam, resolution, device, progress, cancel, eps, max_centres, seed,
-                 normals_mode, orientation, viewpoints, colors, trim, min_piece, reduce_to, solver, memory_budget,
-                 model, close):
+def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, viewpoints, colors):
+    method, lam, resolution, seed = opts.method, opts.lam, opts.resolution, opts.seed
+    normals_mode, trim, min_piece, close = opts.normals_mode, opts.trim, opts.min_piece, opts.close
+    reduce_to, solver, max_centres = opts.reduce_to, opts.solver, opts.max_centres
     vp = check_viewpoints(viewpoints)
-    orient = check_orientation(orientation, vp)
+    orient = check_orientation(opts.orientation, vp)
     estimate_n = normals_mode == "estimate" or (normals_mode == "auto" and normals is None)
     n_in = _row_count(points)
-    plan = budget.plan(
-        n_in, resolution=resolution, estimate_normals=estimate_n, solver=solver, max_centres=max_centres,
-        reduce_to=reduce_to, colors=colors is not None, trim=trim is not None, method=method,
-    )
-    budget.check(plan, memory_budget)
+    subset = opts.max_points is not None and n_in > opts.max_points
+    plan = budget.plan_for(n_in, opts, estimate_normals=estimate_n, colors=colors is not None)
+    budget.check(plan, opts.memory_budget)
 
     t_start = time.perf_counter()
-    engine = select_engine(device)
-    stages = ["normalise"] + (["reduce"] if plan.reduced else []) + (["normals"] if estimate_n else [])
+    engine = select_engine(opts.device)
+    stages = (["subsample"] if subset else []) + ["normalise"] + (["reduce"] if plan.reduced else [])
+    stages += ["normals"] if estimate_n else []
     stages += ["augment"] + (["features"] if model is not None else []) + ["solve", "evaluate", "mesh"]
     stages += (["clean"] if (trim is not None or min_piece > 0) else []) + (["colors"] if colors is not None else [])
     track = Tracker(progress, cancel, stages=stages)
+    subset_info = None
+    if subset:
+        track.begin("subsample")
+        points, normals, colors = random_subset(points, None if estimate_n else normals, colors,
+                                                opts.max_points, seed)
+        subset_info = {"from": n_in, "to": len(points)}
     track.begin("normalise")
     clean = clean_points(points, None if estimate_n else normals, require_normals=not estimate_n,
                          allow_flat=trim is not None)
     for line in clean.warnings():
         warnings.warn(line, InputWarning, stacklevel=3)
-    rgb = None if colors is None else as_rgb8(colors, n_in)[clean.index]
+    rgb = None if colors is None else as_rgb8(colors, len(points))[clean.index]
     norm = Normalisation.fit(clean.points)
     x = norm.to_unit(clean.points)
     nrm = clean.normals
@@ -303,7 +276,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
         nrm, normal_info = estimate_normals(x, orientation=orient, viewpoints=unit_vp, check=track.check)
 
     track.begin("augment")
-    eps_used = float(eps) if eps is not None else default_eps(n)
+    eps_used = float(opts.eps) if opts.eps is not None else default_eps(n)
     xa, y = augment(x, nrm, eps_used)
     phi = None
     sigma = None
@@ -320,8 +293,8 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
                 feature_scale = 0.0
         prep = model.prepare(xa, y, feature_scale=feature_scale)
         a, y, phi = prep.a, prep.y, prep.phi
-    kind = choose_solver(n, max_centres, solver)
-    if device == "auto" and kind == "pou" and engine.device != "cpu":
+    kind = budget.choose_solver(n, max_centres, solver)
+    if opts.device == "auto" and kind == "pou" and engine.device != "cpu":
         # The partition of unity's sum is one fused CPU loop; through PyTorch on a GPU it runs patch
         # by patch and was 5x slower (20,000 points: 9.2 s on an H100 against 1.8 s on its CPU).
         engine = cpu_engine()
@@ -421,6 +394,7 @@ def _reconstruct(points, normals, *, method, lam, resolution, device, progress, 
         "vertices": int(len(unit_v)),
         "triangles": int(len(faces)),
         "reduction": reduction,
+        "subset": subset_info,
         "normals": "estimated" if estimate_n else "given",
         "orientation": None if normal_info is None else {
             "rule": normal_info.orientation, "pieces": normal_info.pieces, "decided_by_views": normal_info.seeded,
@@ -456,29 +430,3 @@ def _row_count(points) -> int:
         return len(points)
     except TypeError:
         return 0
-
-
-def choose_solver(n_points: int, max_centres: int, solver: str = "auto") -> str:
-    """The solver ``reconstruct`` uses for ``n_points`` oriented points."""
-    if solver != "auto":
-        return solver
-    return "dense" if 2 * n_points <= max_centres else "pou"
-
-
-def check_scan_settings(normals_mode, normals, solver, reduce_to, trim, min_piece) -> None:
-    """Raise :class:`InvalidParameterError` for a normals mode, solver, reduction or clean-up
-    setting out of range."""
-    if normals_mode not in NORMALS_MODES:
-        raise InvalidParameterError(f"normals_mode must be one of {', '.join(NORMALS_MODES)}; got {normals_mode!r}")
-    if normals_mode == "given" and normals is None:
-        raise MissingNormalsError(
-            "normals are required with normals_mode='given': pass one unit normal per point, "
-            "or use normals_mode='auto' to estimate them"
-        )
-    if solver not in SOLVERS:
-        raise InvalidParameterError(f"solver must be one of {', '.join(SOLVERS)}; got {solver!r}")
-    if reduce_to is not None and (
-        isinstance(reduce_to, bool) or not isinstance(reduce_to, (int, np.integer)) or reduce_to < 1000
-    ):
-        raise InvalidParameterError(f"reduce_to must be an integer >= 1000 or None, got {reduce_to!r}")
-    check_trim_settings(trim, min_piece)

@@ -11,6 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# The evaluation grid spans [-GRID_HALF, GRID_HALF]^3 of the unit box: the box plus 5 % on each side.
+GRID_HALF = 0.55
+
 
 @dataclass(frozen=True)
 class Normalisation:

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from skimage.measure import marching_cubes
 
-from .evaluate import GRID_HALF, SparseField, node_keys
+from ..points.normalise import GRID_HALF
+from .evaluate import SparseField, node_keys
 
 BLOCK = 32
 

@@ -16,12 +16,6 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ..errors import InvalidParameterError
-
-# Defaults for inputs flagged as scans (the command line's --scan, the Blender panel's scan options).
-SCAN_TRIM = 4.0
-SCAN_MIN_PIECE = 0.002
-
 
 @dataclass
 class TrimInfo:
@@ -44,21 +38,6 @@ class TrimInfo:
     pieces_before: int = 0
     pieces_removed: int = 0
     small_piece_faces: int = 0
-
-
-def check_trim_settings(trim, min_piece) -> None:
-    """Raise :class:`InvalidParameterError` for a trim factor or piece fraction out of range."""
-    if trim is not None:
-        if isinstance(trim, bool) or not isinstance(trim, (int, float, np.floating, np.integer)):
-            raise InvalidParameterError(f"trim must be a number of point spacings (> 0) or None, got {trim!r}")
-        if not np.isfinite(trim) or trim <= 0:
-            raise InvalidParameterError(
-                f"trim must be a positive number of point spacings, or None to keep the closed surface; got {trim!r}"
-            )
-    if isinstance(min_piece, bool) or not isinstance(min_piece, (int, float, np.floating, np.integer)):
-        raise InvalidParameterError(f"min_piece must be a fraction of the mesh's area in [0, 1), got {min_piece!r}")
-    if not 0 <= min_piece < 1:
-        raise InvalidParameterError(f"min_piece must be a fraction of the mesh's area in [0, 1), got {min_piece!r}")
 
 
 def far_vertices(vertices: np.ndarray, points: np.ndarray, threshold: float, tree=None) -> np.ndarray:

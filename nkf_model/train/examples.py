@@ -23,8 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..points.normalise import Normalisation
-from ..surface.evaluate import GRID_HALF
+from ..points.normalise import GRID_HALF, Normalisation
 from . import corpus, metrics
 
 CACHE_VERSION = 1

@@ -194,7 +194,7 @@ def example_loss(net, ex: Example, fit: FitSpec, device="cpu"):
 
 def field_iou(f: np.ndarray, queries: np.ndarray, occupancy: np.ndarray) -> float:
     """IoU of ``f < 0`` (inside the evaluation grid box only) against the true occupancy."""
-    from ..surface.evaluate import GRID_HALF
+    from ..points.normalise import GRID_HALF
 
     pred = (f < 0) & np.all(np.abs(queries) <= GRID_HALF, axis=1)
     true = occupancy > 0.5
