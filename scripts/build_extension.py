@@ -9,7 +9,7 @@ Steps:
 1. stage ``build/extension/`` (git-ignored): ``blender_manifest.toml`` from the repository root, the
    contents of ``nkf_blender/`` (Blender wants the manifest and ``__init__.py`` side by side), and a
    ``wheels/`` folder with the pure-Python ``nkf_model`` wheel built from this repository
-   (``pip wheel --no-deps``);
+   (``pip wheel --no-deps``), without its training code (:data:`NOT_BUNDLED`);
 2. check that every wheel listed in the manifest is there and nothing else is;
 3. ``blender_ext.py validate`` on the staged folder;
 4. ``blender_ext.py build`` into ``dist/`` (``<id>-<version>.zip``).
@@ -76,7 +76,33 @@ def build_wheel(dest: Path) -> Path:
         raise BuildError(f"expected one nkf_model wheel in {dest}, found {[w.name for w in wheels]}")
     if not wheels[0].name.endswith("-py3-none-any.whl"):
         raise BuildError(f"the nkf_model wheel must be pure Python, got {wheels[0].name}")
+    strip_wheel(wheels[0], NOT_BUNDLED)
     return wheels[0]
+
+
+# What the extension's copy of nkf_model leaves out: training code (it needs the mesh corpus and
+# PyTorch's autograd; reconstruction never imports it, tests/test_architecture.py enforces that).
+NOT_BUNDLED = ("nkf_model/train/",)
+
+
+def strip_wheel(wheel: Path, prefixes) -> list[str]:
+    """Rewrite ``wheel`` without the files under ``prefixes`` (and their RECORD lines); returns them."""
+    import zipfile
+
+    tmp = wheel.with_suffix(".tmp")
+    dropped = []
+    with zipfile.ZipFile(wheel) as src, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as dst:
+        for info in src.infolist():
+            if info.filename.startswith(tuple(prefixes)):
+                dropped.append(info.filename)
+                continue
+            data = src.read(info)
+            if info.filename.endswith(".dist-info/RECORD"):
+                lines = data.decode().splitlines(keepends=True)
+                data = "".join(ln for ln in lines if not ln.startswith(tuple(prefixes))).encode()
+            dst.writestr(info, data)
+    tmp.replace(wheel)
+    return dropped
 
 
 def stage(stage_dir: Path = STAGE) -> dict:
