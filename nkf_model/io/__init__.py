@@ -1,0 +1,1 @@
+"""Files: reading point clouds, writing meshes."""

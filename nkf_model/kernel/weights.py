@@ -20,6 +20,7 @@ import math
 from pathlib import Path
 
 from ..errors import DefaultWeightsMissingError, WeightsError
+from ..io.safetensors_file import read_safetensors
 
 FORMAT = "nkf-weights"
 FORMAT_VERSION = "1"
@@ -59,30 +60,6 @@ def save_weights(path, net, *, lam: float, training: dict | None = None) -> Path
     save_file(tensors, str(tmp), metadata=meta)
     tmp.replace(path)
     return path
-
-
-def read_safetensors(path, framework: str = "numpy"):
-    """Tensors (as ``framework`` arrays: ``"numpy"`` or ``"pt"``) and metadata of a safetensors
-    file: ``(dict, dict)``. Every problem raises :class:`~nkf_model.errors.WeightsError` naming
-    the file."""
-    from safetensors import safe_open
-
-    path = Path(path)
-    if not path.exists():
-        raise WeightsError(f"weights file {path} does not exist")
-    if not path.is_file():
-        raise WeightsError(f"weights path {path} is not a file")
-    try:
-        with safe_open(str(path), framework=framework) as fh:
-            meta = fh.metadata() or {}
-            tensors = {k: fh.get_tensor(k) for k in fh.keys()}
-    except PermissionError:
-        raise WeightsError(f"weights file {path} cannot be read (permission denied)") from None
-    except Exception as exc:  # safetensors raises its own error types for every kind of damage
-        raise WeightsError(
-            f"weights file {path} is not a valid safetensors file (truncated or corrupt?): {exc}"
-        ) from None
-    return tensors, meta
 
 
 def read_weights(path):

@@ -26,6 +26,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import WeightsError
+from ..io.safetensors_file import read_safetensors
 from .edges import WINDING_EXCLUDE, edge_relation
 
 FORMAT = "nkf-sign-check"
@@ -144,8 +145,6 @@ class SignCheck:
     @classmethod
     def load(cls, path=None) -> SignCheck:
         """Read a weights file (default: the one shipped in the package); raises WeightsError."""
-        from ..kernel.weights import read_safetensors
-
         path = Path(path) if path is not None else WEIGHTS
         if not path.is_file():
             raise WeightsError(f"sign-check weights {path} are missing; reinstall the package")
