@@ -37,6 +37,20 @@ def _cell(x0, x1, x2, lo, h, dims):
     return ix, iy, iz, min(max(fx - ix, 0.0), 1.0), min(max(fy - iy, 0.0), 1.0), min(max(fz - iz, 0.0), 1.0)
 
 
+@nb.njit(inline="always")
+def _corner(ix, iy, iz, tx, ty, tz, dims, a, b, c):
+    """Flat patch index and weight of the corner ``(ix + a, iy + b, iz + c)`` (a, b, c each 0 or 1) of
+    the cell that :func:`_cell` gives, at the fractional position (tx, ty, tz).
+
+    Both callers step a, b, c in three nested loops (corner ``q = 4a + 2b + c``); that loop shape is
+    kept on purpose: a single ``for q in range(8)`` changes how LLVM compiles :func:`pou_sum` under
+    fastmath and moves its results in the last bits."""
+    wx = _smooth(tx) if a == 1 else _smooth(1.0 - tx)
+    wy = _smooth(ty) if b == 1 else _smooth(1.0 - ty)
+    wz = _smooth(tz) if c == 1 else _smooth(1.0 - tz)
+    return ((ix + a) * dims + (iy + b)) * dims + (iz + c), wx * wy * wz
+
+
 @nb.njit(**_OPTS)
 def gram_general(u, r, diag):  # pragma: no cover - compiled
     """Kernel matrix ``r_i r_j g(|u_i - u_j|^2) / pi`` (n, n) of unit vectors ``u`` (n, D), plus
@@ -109,15 +123,11 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step, 
         ix, iy, iz, tx, ty, tz = _cell(x[i, 0], x[i, 1], x[i, 2], lo, h, dims)
         total = 0.0
         for a in range(2):
-            wx = _smooth(tx) if a == 1 else _smooth(1.0 - tx)
             for b in range(2):
-                wy = _smooth(ty) if b == 1 else _smooth(1.0 - ty)
                 for c in range(2):
-                    wz = _smooth(tz) if c == 1 else _smooth(1.0 - tz)
-                    w = wx * wy * wz
+                    p, w = _corner(ix, iy, iz, tx, ty, tz, dims, a, b, c)
                     if w == 0.0:
                         continue
-                    p = ((ix + a) * dims + (iy + b)) * dims + (iz + c)
                     m = count[p]
                     if m == 0:
                         total += w * _trilinear(f0, f0_lo, f0_step, x[i, 0], x[i, 1], x[i, 2])
@@ -149,13 +159,9 @@ def corner_weights(x, lo, h, dims):  # pragma: no cover - compiled
         ix, iy, iz, tx, ty, tz = _cell(x[i, 0], x[i, 1], x[i, 2], lo, h, dims)
         q = 0
         for a in range(2):
-            wx = _smooth(tx) if a == 1 else _smooth(1.0 - tx)
             for b in range(2):
-                wy = _smooth(ty) if b == 1 else _smooth(1.0 - ty)
                 for c in range(2):
-                    wz = _smooth(tz) if c == 1 else _smooth(1.0 - tz)
-                    idx[i, q] = ((ix + a) * dims + (iy + b)) * dims + (iz + c)
-                    wts[i, q] = wx * wy * wz
+                    idx[i, q], wts[i, q] = _corner(ix, iy, iz, tx, ty, tz, dims, a, b, c)
                     q += 1
     return idx, wts
 
