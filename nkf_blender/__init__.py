@@ -9,6 +9,9 @@ The reconstruction itself is the ``nkf_model`` package, bundled as a wheel. Modu
 
 * ``deps``, ``installer``, ``methods``, ``job``, ``estimates``, ``errors``: no ``bpy``; worker-thread
   logic, time and memory estimates, dependency checks and the pip installer;
+* ``settings`` reads every default, range and tooltip from ``nkf_model.options`` and maps the
+  properties to one ``nkf_model.options.Options``; enabling imports nothing heavier than that
+  (no PyTorch, SciPy, scikit-image, numba, nor nkf_model's reconstruction code);
 * ``source`` (read points), ``result`` (build the mesh), ``runner`` (jobs on the main thread),
   ``settings``, ``ops``, ``panel``, ``prefs``, ``api``: the Blender side.
 """
@@ -24,14 +27,16 @@ _CLASSES = (settings.NKF_PG_settings, *prefs.CLASSES, *ops.CLASSES, *panel.CLASS
 
 def register() -> None:
     # Find packages installed by "Install Dependencies" or in the user's PyTorch folder first:
-    # the method's default (NKF when nkf_model can run it) depends on them.
+    # the method's default (NKF when nkf_model can run it) depends on them. The default is decided
+    # without importing PyTorch or nkf_model's reconstruction code (methods.quick_default), so that
+    # enabling the add-on stays cheap; the real check runs when a reconstruction does.
     prefs_cls = prefs.NKFPreferences
     bpy.utils.register_class(prefs_cls)
     p = prefs.get_prefs()
     if p is not None and p.torch_path:
         prefs._applied_torch_path[0] = bpy.path.abspath(p.torch_path)
     prefs.apply_paths(p)
-    default = methods.default_method() if deps.status().ready else "SPLINES"
+    default = methods.quick_default() if deps.status().ready else "SPLINES"
     settings.prepare_classes(default, settings.NKF_PG_settings, ops.OBJECT_OT_nkf_reconstruct)
     for cls in _CLASSES:
         if cls is not prefs_cls:

@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import bpy
 
+from nkf_model.options import SETTING
+
 from . import prefs, runner
 from .errors import UserError
-from .job import NORMALS_MODES, ORIENTATIONS, Settings
 from .methods import DEVICE_IDS, METHOD_IDS, default_method
-from .settings import DEFAULT_LAMBDA, DEFAULT_MAX_POINTS, DEFAULT_RESOLUTION
+from .settings import DEFAULT_MAX_POINTS, build_options
 
 __all__ = ["reconstruct_object", "UserError"]
 
@@ -41,19 +42,31 @@ def _device(value) -> str:
     return v
 
 
-def _choice(name: str, value, allowed) -> str:
+def _choice(name: str, value, setting: str) -> str:
+    """``value`` lower-cased, if it is a value of the core's ``setting`` (the message names this
+    function's keyword ``name``)."""
     v = str(value).lower()
+    allowed = SETTING[setting].values
     if v not in allowed:
         raise UserError(f"{name} must be one of {', '.join(repr(a) for a in allowed)}, got {value!r}")
     return v
+
+
+def _as(kind, value):
+    """``kind(value)`` (numbers given as other numeric types), else ``value`` itself for
+    :class:`~nkf_model.options.Options` to refuse with its message."""
+    try:
+        return kind(value)
+    except (TypeError, ValueError):
+        return value
 
 
 def reconstruct_object(
     obj: bpy.types.Object,
     *,
     method: str | None = None,
-    regularization: float = DEFAULT_LAMBDA,
-    resolution: int = DEFAULT_RESOLUTION,
+    regularization: float = SETTING["lam"].default,
+    resolution: int = SETTING["resolution"].default,
     max_points: int = DEFAULT_MAX_POINTS,
     device: str = "auto",
     normals: str = "auto",
@@ -79,7 +92,8 @@ def reconstruct_object(
     resolution : int
         Grid cells along the longest side, 16 to 1024.
     max_points : int
-        Use a seeded random subset above this many points; 0 uses all.
+        Use a seeded random subset above this many points; 0 uses all. The default, 100,000, is the
+        panel's (the core's is all points).
     device : {"auto", "cpu", "gpu"}
     normals : {"auto", "given", "estimate"}
         ``"auto"``: the object's normals when it has them, else estimated; ``"given"``: the
@@ -88,9 +102,10 @@ def reconstruct_object(
         Which way estimated normals point; ``"viewpoint"``: towards the scene camera.
     trim : float, optional
         For open scans: cut the surface farther than this many point spacings from every point
-        (``nkf_model.surface.trim.SCAN_TRIM`` = 4 suits scans); ``None`` keeps the closed surface.
+        (``nkf_model.options.SCAN_TRIM`` = 4 suits scans); ``None`` keeps the closed surface.
     min_piece : float
-        Drop connected pieces under this fraction of the area (scans: 0.002); 0 keeps all.
+        Drop connected pieces under this fraction of the area (scans:
+        ``nkf_model.options.SCAN_MIN_PIECE`` = 0.002); 0 keeps all.
     close : bool
         Cap the surface where it runs into the bounding box (plus 5 %): a watertight mesh.
     colors : bool
@@ -118,23 +133,22 @@ def reconstruct_object(
     context = context or bpy.context
     if memory_budget_gb is not None and not float(memory_budget_gb) > 0:
         raise UserError(f"memory_budget_gb must be > 0, got {memory_budget_gb!r}")
-    settings = Settings(
+    options = build_options(
         method=_method(method),
-        lam=float(regularization),
-        resolution=int(resolution),
-        max_points=int(max_points),
+        lam=_as(float, regularization),
+        resolution=_as(int, resolution),
+        max_points=_as(int, max_points),
         device=_device(device),
-        normals_mode=_choice("normals", normals, NORMALS_MODES),
-        orientation=_choice("orientation", orientation, ORIENTATIONS),
-        trim=None if trim is None else float(trim),
-        min_piece=float(min_piece),
+        normals_mode=_choice("normals", normals, "normals_mode"),
+        orientation=_choice("orientation", orientation, "orientation"),
+        trim=None if trim is None else _as(float, trim),
+        min_piece=_as(float, min_piece),
         close=bool(close),
-        colors=bool(colors),
         memory_budget=(
             int(float(memory_budget_gb) * prefs.GIB) if memory_budget_gb is not None else prefs.memory_budget(context)
         ),
     )
-    ob = runner.run_sync(context, obj, settings)
+    ob = runner.run_sync(context, obj, options, colors=bool(colors))
     if ob is None:  # only a cancel event can get here, and nothing sets one in this path
         raise UserError("the reconstruction was cancelled")
     return ob

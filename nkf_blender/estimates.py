@@ -1,8 +1,8 @@
 """Time and memory of a reconstruction before it starts, in the panel's and the operator's terms.
 
-No ``bpy`` here. Wraps :func:`nkf_model.estimate` (microseconds, no data looked at) with what the
-add-on does before calling :func:`nkf_model.reconstruct` (the Max Points subset), and turns a
-memory estimate over the budget into one line that names the Blender setting to lower.
+No ``bpy`` here. Wraps :func:`nkf_model.estimate` (microseconds, no data looked at; it applies the
+same settings as :func:`nkf_model.reconstruct`, the Max Points subset included) and turns a memory
+estimate over the budget into one line that names the Blender setting to lower.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
-from .job import Settings
+from nkf_model.options import MIN_RESOLUTION, Options
 
 GB = 2**30
 
@@ -34,9 +34,9 @@ def gb(n_bytes: float) -> str:
     return f"{x:.1f} GB" if x >= 1 else f"{x:.2g} GB"
 
 
-def points_used(count: int, max_points: int) -> int:
-    """Points handed to nkf_model: all, or the Max Points subset."""
-    return min(count, max_points) if max_points else count
+def points_used(count: int, max_points: int | None) -> int:
+    """Points fitted: all, or the Max Points subset (``max_points`` ``None``: all)."""
+    return count if max_points is None else min(count, max_points)
 
 
 def resolve_budget(memory_budget: int | None) -> int:
@@ -48,35 +48,32 @@ def resolve_budget(memory_budget: int | None) -> int:
     return int(default_memory_budget())
 
 
-def outlook(count: int, settings: Settings, estimate_normals: bool, colors: bool) -> Outlook:
-    """The estimate for ``count`` points of an object under ``settings``.
+def outlook(count: int, options: Options, estimate_normals: bool, colors: bool) -> Outlook:
+    """The estimate for ``count`` points of an object run with ``options``.
 
     ``estimate_normals``: whether the object's normals will be estimated; ``colors``: whether
-    colours will be carried (the object has them and ``settings.colors`` is on). Raises
-    ImportError when nkf_model cannot be imported (missing packages).
+    colours will be carried (the object has them and Colours is on). Raises ImportError when
+    nkf_model cannot be imported (missing packages).
     """
-    return _outlook(
-        int(count), int(settings.max_points), int(settings.resolution), bool(estimate_normals),
-        bool(colors), settings.trim is not None, resolve_budget(settings.memory_budget), str(settings.method),
-    )
+    return _outlook(int(count), options, bool(estimate_normals), bool(colors), resolve_budget(options.memory_budget))
 
 
 @lru_cache(maxsize=64)
-def _outlook(count, max_points, resolution, estimate_normals, colors, trim, budget, method="splines") -> Outlook:
+def _outlook(count: int, options: Options, estimate_normals: bool, colors: bool, budget: int) -> Outlook:
     import nkf_model
 
-    n = points_used(count, max_points)
+    def est(n_points, opts):
+        return nkf_model.estimate(n_points, options=opts, estimate_normals=estimate_normals, colors=colors)
 
-    def est(n_points, res):
-        return nkf_model.estimate(n_points, resolution=res, estimate_normals=estimate_normals, colors=colors,
-                                  trim=trim, method=method)
-
-    e = est(n, resolution)
+    e = est(count, options)
     problem = ""
     if e.peak_bytes > budget:
         # Name the setting whose halving saves more memory.
-        by_resolution = e.peak_bytes - est(n, max(16, resolution // 2)).peak_bytes
-        by_points = e.peak_bytes - est(max(1, n // 2), resolution).peak_bytes
+        n = points_used(count, options.max_points)
+        resolution = options.resolution
+        half_res = options.replace(resolution=max(MIN_RESOLUTION, resolution // 2))
+        by_resolution = e.peak_bytes - est(count, half_res).peak_bytes
+        by_points = e.peak_bytes - est(max(1, n // 2), options).peak_bytes
         if by_resolution >= by_points:
             hint = f"lower Resolution (now {resolution})"
         else:

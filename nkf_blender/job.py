@@ -10,88 +10,25 @@ from __future__ import annotations
 import threading
 import time
 import traceback
-from dataclasses import dataclass
 
-import numpy as np
+from nkf_model.options import Options
+from nkf_model.pipeline.stages import STAGE_LABELS
+
+__all__ = ["ReconstructJob", "STAGE_LABELS", "PENDING", "RUNNING", "DONE", "FAILED", "CANCELLED"]
 
 PENDING, RUNNING, DONE, FAILED, CANCELLED = "pending", "running", "done", "failed", "cancelled"
-STAGE_LABELS = {
-    "start": "Starting",
-    "subsample": "Subsampling",
-    "normalise": "Normalising",
-    "reduce": "Reducing",
-    "normals": "Estimating normals",
-    "augment": "Augmenting",
-    "features": "Features",
-    "solve": "Solving",
-    "evaluate": "Evaluating",
-    "mesh": "Meshing",
-    "clean": "Trimming",
-    "colors": "Colours",
-    "done": "Done",
-}
-
-
-# The scan defaults of nkf_model.surface.trim (SCAN_TRIM, SCAN_MIN_PIECE), repeated here so that the
-# add-on registers even when nkf_model's dependencies are missing; a test keeps them equal.
-SCAN_TRIM = 4.0
-SCAN_MIN_PIECE = 0.002
-NORMALS_MODES = ("auto", "given", "estimate")
-ORIENTATIONS = ("outward", "up", "viewpoint")
-
-
-@dataclass(frozen=True)
-class Settings:
-    """What to run, in nkf_model's terms.
-
-    ``method`` ``"nkf"`` or ``"splines"``; ``lam`` >= 0; ``resolution`` grid cells per side;
-    ``max_points`` cap on the points used (a seeded random subset above it, 0 = no cap);
-    ``device`` ``"auto"``, ``"cpu"`` or ``"cuda"``.
-
-    Scans: ``normals_mode`` ``"auto"`` (the object's normals when it has them, else estimated),
-    ``"given"`` (the object must have normals) or ``"estimate"`` (always estimated);
-    ``orientation`` of estimated normals, ``"outward"``, ``"up"`` or ``"viewpoint"`` (towards the
-    scene camera); ``trim`` point spacings beyond which the surface is cut (``None``: closed
-    surface); ``min_piece`` smallest piece kept, as a fraction of the area (0 keeps all);
-    ``close`` caps the surface at the grid's bounds (a watertight mesh);
-    ``colors`` carry the object's point colours onto the mesh; ``memory_budget`` bytes a run may
-    use (``None``: nkf_model's default, 60 % of the memory, at most 16 GiB).
-    """
-
-    method: str = "splines"
-    lam: float = 1e-10
-    resolution: int = 128
-    max_points: int = 0
-    device: str = "auto"
-    seed: int = 0
-    normals_mode: str = "auto"
-    orientation: str = "outward"
-    trim: float | None = None
-    min_piece: float = 0.0
-    close: bool = False
-    colors: bool = True
-    memory_budget: int | None = None
-
-
-def subsample(points: np.ndarray, normals, max_points: int, seed: int = 0, colors=None):
-    """At most ``max_points`` rows, chosen at random with ``seed`` and kept in their order.
-
-    ``normals`` and ``colors`` (either may be ``None``) are indexed like ``points``. Returns
-    ``(points, normals, colors)``.
-    """
-    n = len(points)
-    if not max_points or n <= max_points:
-        return points, normals, colors
-    idx = np.sort(np.random.default_rng(seed).choice(n, size=max_points, replace=False))
-    return points[idx], None if normals is None else normals[idx], None if colors is None else colors[idx]
 
 
 class ReconstructJob:
-    """Reconstruct a mesh from ``points`` (N, 3) and ``normals`` (N, 3) or ``None``, float32 or float64.
+    """Reconstruct a mesh from ``points`` (N, 3) and ``normals`` (N, 3) or ``None``, float32 or float64,
+    with the settings ``options`` (an :class:`nkf_model.options.Options`).
 
-    ``colors`` (N, 3) uint8 sRGB or ``None``; ``viewpoints`` (K, 3) scanner positions in the frame
-    of ``points`` (for ``orientation="viewpoint"``) or ``None``. With ``normals=None`` the normals
-    are estimated (``settings.orientation``).
+    ``colors`` (N, 3) uint8 sRGB or ``None`` (carried onto the mesh when given); ``viewpoints``
+    (K, 3) scanner positions in the frame of ``points`` (for ``orientation="viewpoint"``) or
+    ``None``. With ``normals=None`` (``normals_mode`` "auto") or ``normals_mode="estimate"`` the
+    normals are estimated, oriented by ``options.orientation``. ``options.max_points`` takes a
+    seeded random subset inside :func:`nkf_model.reconstruct`; ``points_used`` says how many
+    points it fitted (and, before the run ends, how many it will).
 
     Use ``start()`` to run on a daemon worker thread, or ``run()`` to run in the calling thread.
     ``on_progress(fraction, stage)``, if given, is called from the thread that runs the work.
@@ -99,12 +36,14 @@ class ReconstructJob:
     (``error`` holds one line for the user), or ``"cancelled"``.
     """
 
-    def __init__(self, points, normals, settings: Settings, on_progress=None, *, colors=None, viewpoints=None):
+    def __init__(self, points, normals, options: Options, on_progress=None, *, colors=None, viewpoints=None):
+        if not isinstance(options, Options):
+            raise TypeError(f"options must be an nkf_model.options.Options, got {type(options).__name__}")
         self.points = points
         self.normals = normals
         self.colors = colors
         self.viewpoints = viewpoints
-        self.settings = settings
+        self.options = options
         self._listener = on_progress
         self.cancel_event = threading.Event()
         self._lock = threading.Lock()
@@ -185,28 +124,34 @@ class ReconstructJob:
             self._listener(float(fraction), stage)
 
     def _work(self) -> None:
-        s = self.settings
+        opts = self.options
+        estimate = opts.normals_mode == "estimate" or (opts.normals_mode == "auto" and self.normals is None)
+        n = len(self.points)
+        self.points_used = n if opts.max_points is None else min(n, opts.max_points)
         try:
             import nkf_model
 
-            self._on_progress(0.0, "subsample")
-            pts, nrm, rgb = subsample(self.points, self.normals, s.max_points, s.seed, self.colors)
-            self.points_used = len(pts)
-            if len(pts) < len(self.points):
-                self.notes.append(f"used a random {len(pts):,} of {len(self.points):,} points (Max Points)")
-            estimate = nrm is None
-            mesh = nkf_model.reconstruct(
-                pts, nrm, method=s.method, lam=s.lam, resolution=s.resolution, device=s.device,
-                progress=self._on_progress, cancel=self.cancel_event, seed=s.seed,
-                normals_mode="estimate" if estimate else "given",
-                orientation=s.orientation if estimate else None,
-                viewpoints=self.viewpoints if estimate and s.orientation == "viewpoint" else None,
-                colors=rgb if s.colors else None, trim=s.trim, min_piece=s.min_piece, close=s.close,
-                memory_budget=s.memory_budget,
+            # The points were read for the normals mode already: say which normals these are, and
+            # orient only estimated ones (an orientation would otherwise ask for viewpoints).
+            run = opts.replace(
+                normals_mode="estimate" if estimate else opts.normals_mode,
+                orientation=opts.orientation if estimate else None,
             )
+            mesh = nkf_model.reconstruct(
+                self.points, None if estimate else self.normals, options=run,
+                progress=self._on_progress, cancel=self.cancel_event, colors=self.colors,
+                viewpoints=self.viewpoints if estimate else None,
+            )
+            subset = mesh.stats.get("subset")
+            if subset:
+                self.points_used = int(subset["to"])
+                self.notes.append(f"used a random {subset['to']:,} of {subset['from']:,} points (Max Points)")
+            else:
+                self.points_used = n
             self.notes.extend(mesh.stats.get("warnings", []))
             if estimate:
-                self.notes.append(f"normals estimated (oriented {s.orientation})")
+                rule = run.orientation or ("viewpoint" if self.viewpoints is not None else "outward")
+                self.notes.append(f"normals estimated (oriented {rule})")
             if self.cancel_event.is_set():
                 self.state = CANCELLED
             else:

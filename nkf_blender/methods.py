@@ -1,8 +1,17 @@
-"""Which reconstruction methods ``nkf_model`` can run here, asked of ``nkf_model`` itself.
+"""Which reconstruction methods ``nkf_model`` can run here.
 
 No ``bpy`` here. The learned NKF kernel may be missing (no weights, no PyTorch); Neural Splines
-needs nothing beyond the required packages. The answer decides the operator's default method and
-the panel's message, and is cached until :func:`refresh`.
+needs nothing beyond the required packages. Two answers:
+
+* :func:`method_status` asks ``nkf_model`` itself (``nkf_model.method_available``: it loads the
+  weights, so it imports PyTorch, about a second). Used when the real answer is needed: the Python
+  API's default method. Cached until :func:`refresh`.
+* :func:`quick_status` imports nothing heavy: the real answer when it is cached, else whether the
+  core ships its weights (:data:`nkf_model.options.DEFAULT_METHOD`) and whether PyTorch and
+  safetensors can be found (``importlib.util.find_spec``, through :mod:`nkf_blender.deps`). Used at
+  registration (the operator's default method) and by the panel, so that enabling the add-on and
+  drawing the panel never load PyTorch. A weights file that is there but broken is then reported
+  by the reconstruction itself.
 """
 
 from __future__ import annotations
@@ -11,7 +20,12 @@ import threading
 
 import numpy as np
 
-# Blender enum identifier -> nkf_model method name.
+from nkf_model.options import DEFAULT_METHOD
+
+from . import deps
+
+# Blender enum identifier -> nkf_model's value, in the items' stored order (never reorder: a .blend
+# file stores an enum property as the item's number).
 METHOD_IDS = {"NKF": "nkf", "SPLINES": "splines"}
 DEVICE_IDS = {"AUTO": "auto", "CPU": "cpu", "GPU": "cuda"}
 
@@ -65,6 +79,32 @@ def method_status(method: str) -> tuple[bool, str]:
             ok, why = False, f"{type(exc).__name__}: {exc}"
     _cache[method] = (bool(ok), str(why))
     return _cache[method]
+
+
+def quick_status(method: str) -> tuple[bool, str]:
+    """``(available, reason)`` without importing PyTorch or any of nkf_model's reconstruction code:
+    :func:`method_status`'s answer when it is cached, else what can be told from the files."""
+    if method in _cache:
+        return _cache[method]
+    if method == "splines":
+        return True, ""
+    if method != "nkf":
+        return False, f"unknown method {method!r}"
+    if DEFAULT_METHOD != "nkf":
+        return False, "this installation has no default weights for method 'nkf'; use Neural Splines"
+    st = deps.status()
+    missing = [name for name in ("torch", "safetensors") if not st.found.get(name)]
+    if missing:
+        return False, (
+            f"{' and '.join(missing)} {'is' if len(missing) == 1 else 'are'} not installed: "
+            "install the dependencies in the add-on preferences"
+        )
+    return True, ""
+
+
+def quick_default() -> str:
+    """The Blender enum id of the default method from :func:`quick_status` (nothing heavy imported)."""
+    return "NKF" if quick_status("nkf")[0] else "SPLINES"
 
 
 def nkf_available() -> tuple[bool, str]:

@@ -50,8 +50,8 @@ class OBJECT_OT_nkf_reconstruct(bpy.types.Operator):
         obj = context.active_object
         on_progress = _print_stages() if bpy.app.background else None
         try:
-            s = settings.to_settings(self, prefs.memory_budget(context))
-            ob = runner.run_sync(context, obj, s, on_progress=on_progress)
+            opts = settings.to_options(self, prefs.memory_budget(context))
+            ob = runner.run_sync(context, obj, opts, on_progress=on_progress, colors=self.use_colors)
         except UserError as exc:
             self.report({"ERROR"}, f"NKF: {exc}")
             return {"CANCELLED"}
@@ -66,7 +66,8 @@ class OBJECT_OT_nkf_reconstruct(bpy.types.Operator):
             return self.execute(context)
         obj = context.active_object
         try:
-            self._key = runner.start(context, obj, settings.to_settings(self, prefs.memory_budget(context)))
+            opts = settings.to_options(self, prefs.memory_budget(context))
+            self._key = runner.start(context, obj, opts, colors=self.use_colors)
         except UserError as exc:
             self.report({"ERROR"}, f"NKF: {exc}")
             return {"CANCELLED"}

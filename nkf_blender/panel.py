@@ -5,8 +5,11 @@ estimated) and its colours, the parameters (with the scan options: normals mode,
 minimum piece, colours), the time and memory estimate for this object and these settings,
 Reconstruct or (while running) live progress with the stage and Cancel, the last run's time and
 triangle count, and an actionable message when packages are missing, the object cannot be used or
-the estimate exceeds the memory budget. ``draw`` reads only cheap state (no arrays; the estimate is
-cached), so it can run on every redraw.
+the estimate exceeds the memory budget (or a setting is out of range). ``draw`` reads only cheap
+state (no arrays; the estimate is cached), so it can run on every redraw. It never imports
+PyTorch: whether NKF can run is :func:`nkf_blender.methods.quick_status` (files and packages
+found); the estimate imports nkf_model's time and memory model (``nkf_model.pipeline.budget``,
+NumPy only).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from __future__ import annotations
 import bpy
 
 from . import deps, estimates, methods, ops, prefs, runner, settings, source
+from .errors import UserError
 from .prefs import ADDON, wrapped
 
 WRAP = 38
@@ -49,11 +53,17 @@ def _normals_line(box, info, s, context) -> str:
 
 
 def _estimate_line(layout, info, s, context) -> str:
-    """The time and memory estimate; return the over-budget message, else ``""``."""
-    job_settings = settings.to_settings(s, prefs.memory_budget(context))
+    """The time and memory estimate; return the over-budget message (or what is wrong with the
+    settings), else ``""``."""
     try:
-        look = estimates.outlook(info.count, job_settings, info.normals is None,
-                                 s.use_colors and info.colors is not None)
+        opts = settings.to_options(s, prefs.memory_budget(context))
+    except UserError as exc:
+        col = layout.column()
+        col.alert = True
+        wrapped(col, str(exc), icon="ERROR", width=WRAP)
+        return str(exc)
+    try:
+        look = estimates.outlook(info.count, opts, info.normals is None, s.use_colors and info.colors is not None)
     except ImportError:
         return ""
     col = layout.column()
@@ -96,7 +106,7 @@ def draw_panel(layout, context) -> None:
     col.use_property_decorate = False
     col.prop(s, "method")
     if s.method == "NKF":
-        ok, why = methods.nkf_available() if ready else (False, "")
+        ok, why = methods.quick_status("nkf") if ready else (False, "")
         if ready and not ok:
             sub = col.column()
             sub.alert = True

@@ -7,10 +7,11 @@ read before the worker starts, and the mesh is built by :func:`finish` after it 
 
 Driving a job the way the modal operator does::
 
-    key = runner.start(context, obj, settings)       # reads the points, starts the worker
-    while runner.poll(key) == "running":              # from a timer: returns at once
+    opts = settings.to_options(props)       # one nkf_model.options.Options (UserError if invalid)
+    key = runner.start(context, obj, opts, colors=props.use_colors)  # reads the points, starts the worker
+    while runner.poll(key) == "running":    # from a timer: returns at once
         ...
-    new_obj = runner.finish(context, key)             # builds the mesh; None if cancelled/failed
+    new_obj = runner.finish(context, key)   # builds the mesh; None if cancelled/failed
 """
 
 from __future__ import annotations
@@ -21,9 +22,11 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
+from nkf_model.options import Options
+
 from . import deps, estimates, result, source
 from .errors import UserError
-from .job import CANCELLED, DONE, FAILED, RUNNING, ReconstructJob, Settings
+from .job import CANCELLED, DONE, FAILED, RUNNING, ReconstructJob
 
 
 @dataclass
@@ -98,10 +101,13 @@ def record(key: int) -> LastRun | None:
     return _last.get(key)
 
 
-def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[ReconstructJob, Active]:
+def prepare(
+    context, obj, options: Options, on_progress=None, *, colors: bool = True
+) -> tuple[ReconstructJob, Active]:
     """Check everything that can be checked now and read the points; the job is not started.
 
-    Raises :class:`~nkf_blender.errors.UserError` (nothing changed) when the object or the
+    ``options`` are the settings; ``colors``: read the object's colours and carry them onto the
+    mesh (the Colours property). Raises :class:`~nkf_blender.errors.UserError` (nothing changed) when the object or the
     installation cannot run.
     """
     if obj is not None and key_of(obj) in _active:
@@ -113,12 +119,12 @@ def prepare(context, obj, settings: Settings, on_progress=None) -> tuple[Reconst
         st = deps.refresh()
     if not st.ready:
         raise UserError(st.message())
-    src = source.read_points(obj, settings.normals_mode, colors=settings.colors)
+    src = source.read_points(obj, options.normals_mode, colors=bool(colors))
     estimate_normals = src.normals is None
-    viewpoints = viewpoint(context, obj) if estimate_normals and settings.orientation == "viewpoint" else None
-    check_budget(len(src.points), settings, estimate_normals, src.colors is not None)
+    viewpoints = viewpoint(context, obj) if estimate_normals and options.orientation == "viewpoint" else None
+    check_budget(len(src.points), options, estimate_normals, src.colors is not None)
     job = ReconstructJob(
-        src.points, src.normals, settings, on_progress=on_progress, colors=src.colors, viewpoints=viewpoints
+        src.points, src.normals, options, on_progress=on_progress, colors=src.colors, viewpoints=viewpoints
     )
     act = Active(
         job=job,
@@ -146,19 +152,19 @@ def viewpoint(context, obj):
     return np.array([tuple(local)], dtype=np.float64)
 
 
-def check_budget(count: int, settings: Settings, estimate_normals: bool, colors: bool) -> None:
+def check_budget(count: int, options: Options, estimate_normals: bool, colors: bool) -> None:
     """Raise :class:`UserError` when the estimated memory of the run exceeds the memory budget."""
     try:
-        look = estimates.outlook(count, settings, estimate_normals, colors)
+        look = estimates.outlook(count, options, estimate_normals, colors)
     except ImportError:
         return  # nkf_model itself will say what is missing
     if look.problem:
         raise UserError(look.problem)
 
 
-def start(context, obj, settings: Settings) -> int:
+def start(context, obj, options: Options, *, colors: bool = True) -> int:
     """Start a job for ``obj`` on a worker thread; return its key for :func:`poll` and :func:`finish`."""
-    job, act = prepare(context, obj, settings)
+    job, act = prepare(context, obj, options, colors=colors)
     _active[act.source_uid] = act
     job.start()
     return act.source_uid
@@ -236,13 +242,13 @@ def finish(context, key: int):
     return ob
 
 
-def run_sync(context, obj, settings: Settings, on_progress=None):
+def run_sync(context, obj, options: Options, on_progress=None, *, colors: bool = True):
     """Read, reconstruct and build in the calling (main) thread; return the new object.
 
     Used by the operator when there is no window to run modal in (``bpy.app.background``, or an
     ``EXEC`` call from a script) and by :func:`nkf_blender.api.reconstruct_object`.
     """
-    job, act = prepare(context, obj, settings, on_progress=on_progress)
+    job, act = prepare(context, obj, options, on_progress=on_progress, colors=colors)
     _active[act.source_uid] = act
     try:
         job.run()

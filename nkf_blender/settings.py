@@ -1,80 +1,114 @@
 """The reconstruction parameters, shared by the operator and the panel's scene settings.
 
 ``method`` (NKF, Neural Splines), ``regularization`` (the paper's lambda, shown as "Lambda"),
-``resolution``, ``max_points`` and ``device``. The method's default is decided at registration:
-NKF when ``nkf_model`` says it can run here, else Neural Splines.
+``resolution``, ``max_points`` and ``device``; for scans ``normals_mode`` (Auto, Given, Estimate),
+``orientation`` of estimated normals (Outward, Up, Viewpoint: towards the scene camera),
+``use_scan`` (an open surface: trim it where it runs farther than ``trim`` point spacings from the
+points, and drop pieces under ``min_piece`` of the area), ``use_close`` and ``use_colors``. The
+memory budget is a preference of the machine (:mod:`nkf_blender.prefs`), not a scene setting.
 
-For scans: ``normals_mode`` (Auto, Given, Estimate), ``orientation`` of estimated normals
-(Outward, Up, Viewpoint: towards the scene camera), ``use_scan`` (an open surface: trim it where
-it runs farther than ``trim`` point spacings from the points, and drop pieces under ``min_piece``
-of the area; the defaults are nkf_model's scan defaults) and ``use_colors``. The memory budget is
-a preference of the machine (:mod:`nkf_blender.prefs`), not a scene setting.
+Defaults, hard ranges, slider ranges, labels, tooltips and enum item texts come from
+:data:`nkf_model.options.SETTING` (standard library only, so this costs nothing at registration);
+:func:`to_options` turns the properties into one validated :class:`nkf_model.options.Options`.
+What stays Blender's own:
+
+* the property names and enum identifiers (and the enum items' numbers), stored in .blend files;
+* ``max_points``: 0 means all points (the core's ``None``), and the default is
+  :data:`DEFAULT_MAX_POINTS` (the core's is all points), so a large scan is not run whole by accident;
+* ``orientation``: Outward by default (the core's ``None`` means "viewpoint when there are
+  viewpoints", and Blender's viewpoint is the scene camera, which most scenes have);
+* ``trim`` and ``min_piece`` default to the scan preset (:data:`~nkf_model.options.SCAN_TRIM`,
+  :data:`~nkf_model.options.SCAN_MIN_PIECE`) and apply only while ``use_scan`` is on;
+* ``use_scan`` and ``use_colors`` have no core setting (colours are data: read them or not);
+* the method's default is decided at registration (:func:`nkf_blender.methods.quick_default`).
 """
 
 from __future__ import annotations
 
+import numbers
+
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
-from .job import SCAN_MIN_PIECE, SCAN_TRIM, Settings
+from nkf_model.errors import InvalidParameterError
+from nkf_model.options import SCAN_MIN_PIECE, SCAN_TRIM, SETTING, Options
+
+from .errors import UserError
 from .methods import DEVICE_IDS, METHOD_IDS
 
-METHOD_ITEMS = [
-    ("NKF", "NKF", "Neural Kernel Field: the learned kernel (needs its trained weights and PyTorch)"),
-    ("SPLINES", "Neural Splines", "The data-free Neural Spline kernel: no weights, runs everywhere"),
-]
-DEVICE_ITEMS = [
-    ("AUTO", "Auto", "A CUDA GPU when PyTorch sees one, else the CPU"),
-    ("CPU", "CPU", "Always the CPU"),
-    ("GPU", "GPU", "A CUDA GPU (needs the CUDA build of PyTorch)"),
-]
-NORMALS_ITEMS = [
-    ("AUTO", "Auto", "The object's normals when it has them, else estimate them"),
-    ("GIVEN", "Given", "The object's normals ('normal' attribute or vertex normals); an error without them"),
-    ("ESTIMATE", "Estimate", "Estimate normals from the points (PCA over 16 neighbours), ignoring the object's"),
-]
-ORIENTATION_ITEMS = [
-    ("OUTWARD", "Outward", "Estimated normals point away from the object (closed objects seen from all around)"),
-    ("UP", "Up", "Estimated normals point upwards (terrain, aerial scans)"),
-    ("VIEWPOINT", "Viewpoint", "Estimated normals point towards the scene camera (put it where the scanner was)"),
-]
-DEFAULT_LAMBDA = 1e-10
-DEFAULT_RESOLUTION = 128
+# Blender enum identifier -> the core's value, in the items' stored order (never reorder: a .blend
+# file stores an enum property as the item's number).
+NORMALS_IDS = {"AUTO": "auto", "GIVEN": "given", "ESTIMATE": "estimate"}
+ORIENTATION_IDS = {"OUTWARD": "outward", "UP": "up", "VIEWPOINT": "viewpoint"}
+# Blender-only defaults (see the module's docstring).
 DEFAULT_MAX_POINTS = 100_000
+DEFAULT_ORIENTATION = "OUTWARD"
+# What an item means in Blender, added to the core's tooltip.
+_ITEM_NOTES = {
+    ("method", "nkf"): "; also needs PyTorch (add-on preferences)",
+    ("orientation", "viewpoint"): ": here, the scene camera",
+}
+
+
+def description(name: str, none: str = "") -> str:
+    """The core's tooltip of setting ``name``, its clause about ``None`` (which a Blender property
+    cannot hold) replaced by ``none`` (Blender's equivalent) or dropped."""
+    text = SETTING[name].description
+    head, sep, _ = text.partition("; None")
+    if sep:
+        text = head + (f"; {none}" if none else "")
+    return text
+
+
+def enum_items(name: str, ids: dict) -> list[tuple[str, str, str, int]]:
+    """``EnumProperty`` items for setting ``name``: ``ids`` maps each Blender identifier to the
+    core's value; label and tooltip are the core's, the number is the position in ``ids``."""
+    choices = {c.value: c for c in SETTING[name].choices}
+    assert set(ids.values()) == set(choices), f"{name}: Blender items {ids} do not match the core's"
+    return [
+        (bid, choices[v].label, choices[v].description + _ITEM_NOTES.get((name, v), ""), i)
+        for i, (bid, v) in enumerate(ids.items())
+    ]
+
+
+def _blender_id(ids: dict, value) -> str:
+    return next(bid for bid, v in ids.items() if v == value)
 
 
 def annotations(default_method: str) -> dict:
     """Fresh property definitions, for a class's ``__annotations__`` before it is registered."""
+    lam, res, mp = SETTING["lam"], SETTING["resolution"], SETTING["max_points"]
+    trim, piece, close = SETTING["trim"], SETTING["min_piece"], SETTING["close"]
     return {
         "method": EnumProperty(
-            name="Method", items=METHOD_ITEMS, default=default_method,
-            description="Which kernel fits the surface",
+            name=SETTING["method"].label, items=enum_items("method", METHOD_IDS), default=default_method,
+            description=description("method"),
         ),
         "regularization": FloatProperty(
-            name="Lambda", default=DEFAULT_LAMBDA, min=0.0, soft_max=1e-3, precision=6,
-            description=(
-                "Regularization (the paper's lambda): 0 interpolates the points exactly, larger "
-                "values give a smoother surface; 1e-12 to 1e-8 fit the points"
-            ),
+            name=lam.label, default=lam.default, min=lam.low, soft_max=lam.soft_high, precision=6,
+            description=description("lam"),
         ),
         "resolution": IntProperty(
-            name="Resolution", default=DEFAULT_RESOLUTION, min=16, max=1024, soft_max=512,
-            description="Grid cells along the longest side; higher gives finer detail and takes longer",
+            name=res.label, default=res.default, min=int(res.low), max=int(res.high), soft_max=int(res.soft_high),
+            description=description("resolution"),
         ),
         "max_points": IntProperty(
-            name="Max Points", default=DEFAULT_MAX_POINTS, min=0, soft_max=1_000_000,
-            description="Use a random subset (fixed seed) when the object has more points; 0 uses all",
+            # 0 (all points) is Blender's stand-in for the core's None; 1 to 9 are refused by to_options.
+            name=mp.label, default=DEFAULT_MAX_POINTS, min=0, soft_max=int(mp.soft_high),
+            description=description("max_points", "0 uses all"),
         ),
         "device": EnumProperty(
-            name="Device", items=DEVICE_ITEMS, default="AUTO", description="Where the kernel runs",
+            name=SETTING["device"].label, items=enum_items("device", DEVICE_IDS),
+            default=_blender_id(DEVICE_IDS, SETTING["device"].default), description=description("device"),
         ),
         "normals_mode": EnumProperty(
-            name="Normals", items=NORMALS_ITEMS, default="AUTO",
-            description="Where the normals come from",
+            name=SETTING["normals_mode"].label, items=enum_items("normals_mode", NORMALS_IDS),
+            default=_blender_id(NORMALS_IDS, SETTING["normals_mode"].default),
+            description=description("normals_mode"),
         ),
         "orientation": EnumProperty(
-            name="Orientation", items=ORIENTATION_ITEMS, default="OUTWARD",
-            description="Which way estimated normals point",
+            name=SETTING["orientation"].label, items=enum_items("orientation", ORIENTATION_IDS),
+            default=DEFAULT_ORIENTATION, description=description("orientation"),
         ),
         "use_scan": BoolProperty(
             name="Scan (Open Surface)", default=False,
@@ -84,20 +118,14 @@ def annotations(default_method: str) -> dict:
             ),
         ),
         "trim": FloatProperty(
-            name="Trim Distance", default=SCAN_TRIM, min=0.5, soft_max=20.0, precision=1,
-            description="Cut the surface farther than this many point spacings from every point",
+            name=trim.label, default=SCAN_TRIM, min=trim.low, soft_max=trim.soft_high, precision=1,
+            description=description("trim", "used while Scan is on"),
         ),
         "min_piece": FloatProperty(
-            name="Min Piece", default=SCAN_MIN_PIECE, min=0.0, max=0.99, soft_max=0.1, precision=4, step=0.1,
-            description="Drop connected pieces with less than this fraction of the total area (0 keeps all)",
+            name=piece.label, default=SCAN_MIN_PIECE, min=piece.low, max=piece.high, soft_max=piece.soft_high,
+            precision=4, step=0.1, description=description("min_piece") + "; used while Scan is on",
         ),
-        "use_close": BoolProperty(
-            name="Watertight", default=False,
-            description=(
-                "Cap the surface where it runs into the bounding box (plus 5 %), so that the mesh is "
-                "closed, for 3D printing; off leaves it open there"
-            ),
-        ),
+        "use_close": BoolProperty(name=close.label, default=close.default, description=description("close")),
         "use_colors": BoolProperty(
             name="Colours", default=True,
             description="Carry the points' colour attribute (e.g. 'Col' from a PLY) onto the mesh",
@@ -111,22 +139,40 @@ PROPERTY_NAMES = (
 )
 
 
-def to_settings(props, memory_budget: int | None = None) -> Settings:
-    """A :class:`~nkf_blender.job.Settings` from anything with the properties of
-    :data:`PROPERTY_NAMES`; ``memory_budget`` in bytes (``None``: nkf_model's default)."""
+def build_options(**settings) -> Options:
+    """A validated :class:`~nkf_model.options.Options` from settings in the core's names and values,
+    with Blender's one convention (``max_points`` 0: all points). Any bad value raises
+    :class:`~nkf_blender.errors.UserError` with the core's message; nothing else checks them."""
+    mp = settings.get("max_points")
+    if isinstance(mp, numbers.Integral) and not isinstance(mp, bool):
+        low = int(SETTING["max_points"].low)
+        if mp == 0:
+            settings["max_points"] = None
+        elif 0 < mp < low:
+            raise UserError(f"Max Points must be 0 (all points) or at least {low}, got {mp}")
+    try:
+        return Options.build(**settings)
+    except InvalidParameterError as exc:
+        raise UserError(str(exc)) from None
+
+
+def to_options(props, memory_budget: int | None = None) -> Options:
+    """The :class:`~nkf_model.options.Options` of anything with the properties of
+    :data:`PROPERTY_NAMES` (the operator, ``scene.nkf_settings``); ``memory_budget`` in bytes
+    (``None``: the core's default). ``use_colors`` is not a setting: the caller reads it (whether
+    colours are read and handed over). Raises :class:`~nkf_blender.errors.UserError`."""
     scan = bool(props.use_scan)
-    return Settings(
+    return build_options(
         method=METHOD_IDS[props.method],
         lam=float(props.regularization),
         resolution=int(props.resolution),
         max_points=int(props.max_points),
         device=DEVICE_IDS[props.device],
-        normals_mode=props.normals_mode.lower(),
-        orientation=props.orientation.lower(),
+        normals_mode=NORMALS_IDS[props.normals_mode],
+        orientation=ORIENTATION_IDS[props.orientation],
         trim=float(props.trim) if scan else None,
         min_piece=float(props.min_piece) if scan else 0.0,
         close=bool(props.use_close),
-        colors=bool(props.use_colors),
         memory_budget=memory_budget,
     )
 

@@ -7,6 +7,8 @@ import time
 
 from blender_helpers import PKG, ext, fibonacci_sphere, import_ply, nkf_threads, write_ply
 
+from nkf_model.options import Options
+
 CLASS_NAMES = (
     "OBJECT_OT_nkf_reconstruct", "OBJECT_OT_nkf_cancel", "VIEW3D_PT_nkf",
     "NKF_OT_install_dependencies", "NKF_OT_cancel_install", "NKF_OT_check_dependencies",
@@ -30,8 +32,7 @@ def test_disable_and_enable_twice_even_with_a_job_running(scene, bpy_module, tmp
     assert site in sys.path
     for round_ in range(2):
         runner = ext("runner")
-        job = ext("job")
-        runner.start(bpy.context, src, job.Settings(method="splines", resolution=128, device="cpu"))
+        runner.start(bpy.context, src, Options(method="splines", resolution=128, device="cpu"))
         assert nkf_threads()
         settings_classes = (ext("settings").NKF_PG_settings, ext("prefs").NKFPreferences)
 

@@ -9,6 +9,8 @@ import pytest
 from blender_helpers import PKG, ext, fibonacci_sphere, import_ply, write_ply
 from recording_layout import RecordingLayout
 
+from nkf_model.options import Options
+
 RECONSTRUCT = "object.nkf_reconstruct"
 CANCEL = "object.nkf_cancel"
 
@@ -113,7 +115,7 @@ def test_running_shows_progress_stage_and_cancel(bpy_module, ball):
     bpy = bpy_module
     runner = ext("runner")
     job = ext("job")
-    key = runner.start(bpy.context, ball, job.Settings(method="splines", resolution=64, device="cpu"))
+    key = runner.start(bpy.context, ball, Options(method="splines", resolution=64, device="cpu"))
     try:
         layout = draw(bpy)  # the job stays "running" until finish() runs on the main thread
         (bar,) = [i for i in layout.items if i.kind == "progress"]

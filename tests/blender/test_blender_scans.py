@@ -11,6 +11,8 @@ import pytest
 from blender_helpers import PKG, ext, fibonacci_sphere, import_ply, read_vectors, snapshot, world_vertices, write_ply
 from recording_layout import RecordingLayout
 
+from nkf_model.options import Options
+
 RECONSTRUCT = "object.nkf_reconstruct"
 
 
@@ -53,11 +55,11 @@ def budget_pref(addon, bpy_module):
     prefs.memory_budget = 0.0
 
 
-def test_scan_defaults_are_nkf_models(addon):
-    from nkf_model.surface import trim
+def test_scan_defaults_are_nkf_models(addon, bpy_module):
+    from nkf_model.options import SCAN_MIN_PIECE, SCAN_TRIM
 
-    job = ext("job")
-    assert (job.SCAN_TRIM, job.SCAN_MIN_PIECE) == (trim.SCAN_TRIM, trim.SCAN_MIN_PIECE)
+    props = bpy_module.context.scene.nkf_settings.bl_rna.properties
+    assert (props["trim"].default, props["min_piece"].default) == pytest.approx((SCAN_TRIM, SCAN_MIN_PIECE))
 
 
 def test_unoriented_point_cloud_reconstructs_with_estimated_normals(scene, bpy_module, tmp_path, capsys):
@@ -137,7 +139,7 @@ def test_trim_cuts_the_closed_blob_of_an_open_hemisphere(scene, bpy_module, tmp_
     # (Not the same faces as the untrimmed run: trimming turns off the closed-surface far field.)
     assert loose_low < -0.4 and loose_faces > 0.95 * closed_faces > scan_faces
     # Off by default: a plain run is not trimmed.
-    assert not ext("settings").to_settings(bpy.context.scene.nkf_settings).trim
+    assert ext("settings").to_options(bpy.context.scene.nkf_settings).trim is None
 
 
 def _red_blue_sphere(n=500):
@@ -242,7 +244,8 @@ def test_oversized_job_under_a_tiny_budget_is_refused_and_changes_nothing(
         ext("api").reconstruct_object(src, method="splines", resolution=32, memory_budget_gb=0.05)
     assert snapshot(bpy) == before
     job_mod = ext("job")
-    job = job_mod.ReconstructJob(pts, nrm, job_mod.Settings(resolution=32, memory_budget=2**20)).run()
+    opts = Options(method="splines", resolution=32, memory_budget=2**20)
+    job = job_mod.ReconstructJob(pts, nrm, opts).run()
     assert job.state == "failed" and "memory budget" in job.error and job.result is None
 
 
@@ -266,4 +269,4 @@ def test_watertight_caps_a_sheet_at_the_bounding_box(scene, bpy_module, tmp_path
 
     assert boundary_edges() > 0  # off by default: open where the sheet meets the box
     assert boundary_edges(use_close=True) == 0
-    assert not ext("settings").to_settings(bpy.context.scene.nkf_settings).close
+    assert not ext("settings").to_options(bpy.context.scene.nkf_settings).close

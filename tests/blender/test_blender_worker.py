@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 from blender_helpers import ext, fibonacci_sphere, import_ply, nkf_threads, snapshot, write_ply
 
+from nkf_model.options import Options
+
 TIMER = 0.05  # the operator polls every 0.1 s; poll faster here to see the stages
 
 
 def _settings(resolution=40, method="splines"):
-    return ext("job").Settings(method=method, resolution=resolution, lam=1e-10, max_points=0, device="cpu")
+    return Options(method=method, resolution=resolution, lam=1e-10, device="cpu")
 
 
 @pytest.fixture
