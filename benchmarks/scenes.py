@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nkf_model.train import corpus
+from nkf_model.train import corpus, metrics
 
 from . import _raster_kernels as rk
 
@@ -245,17 +245,9 @@ def scan(scene: Scene, n_points: int, noise: float = 0.003, seed: int = 0, overs
 
 
 def _sample(vertices, faces, n, rng):
-    """``n`` points uniform by area: positions (n, 3), unit normals (n, 3), face index (n,)."""
-    tri = vertices[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area = 0.5 * np.linalg.norm(cross, axis=1)
-    which = rng.choice(len(faces), size=n, p=area / area.sum())
-    r1 = np.sqrt(rng.random(n))
-    r2 = rng.random(n)
-    t = tri[which]
-    pts = (1 - r1)[:, None] * t[:, 0] + (r1 * (1 - r2))[:, None] * t[:, 1] + (r1 * r2)[:, None] * t[:, 2]
-    nrm = cross[which] / np.maximum(2.0 * area[which], 1e-300)[:, None]
-    return pts, nrm, which
+    """``n`` points uniform by area: positions (n, 3), unit normals (n, 3), face index (n,)
+    (:func:`nkf_model.train.metrics.sample_surface`)."""
+    return metrics.sample_surface(vertices, faces, n, rng, return_faces=True)
 
 
 def main(argv=None) -> int:

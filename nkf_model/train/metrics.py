@@ -23,14 +23,16 @@ PADDING = 0.05
 FSCORE_TAU = 0.01
 
 
-def sample_surface(vertices, faces, n: int, rng: np.random.Generator):
-    """Sample ``n`` points uniformly by area on a triangle mesh.
+def sample_surface(vertices, faces, n: int, rng: np.random.Generator, return_faces: bool = False):
+    """Sample ``n`` points uniformly by area on a triangle mesh (faces of zero area are never drawn).
 
     Returns
     -------
     points : (n, 3) float64
     normals : (n, 3) float64
         Unit normals of the sampled faces (outward for consistently wound meshes).
+    face : (n,) int64
+        Only with ``return_faces``: the row of ``faces`` each point lies on.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -45,6 +47,8 @@ def sample_surface(vertices, faces, n: int, rng: np.random.Generator):
     t = tri[which]
     pts = (1 - r1)[:, None] * t[:, 0] + (r1 * (1 - r2))[:, None] * t[:, 1] + (r1 * r2)[:, None] * t[:, 2]
     nrm = cross[which] / (2.0 * area[which])[:, None]
+    if return_faces:
+        return pts, nrm, np.flatnonzero(keep)[which]
     return pts, nrm
 
 
