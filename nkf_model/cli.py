@@ -171,7 +171,7 @@ def cmd_reconstruct(args) -> int:
     est = budget.plan_for(len(points), opts, estimate_normals=estimate_n, colors=colors is not None)
     if args.dry_run:
         print(f"{args.input}: {n_used:,} points; estimate: {est.summary()}")
-        budget.check(est, opts.memory_budget)
+        budget.enforce(est, opts.memory_budget)
         return 0
     if estimate_n and args.normals == "auto":
         _say(f"{args.input} has no normals: estimating them (--normals auto)")

@@ -82,13 +82,13 @@ def test_falkon_with_fewer_centres_fits_the_constraints():
 def test_solves_stop_when_cancelled():
     _, _, a, y = constraints(200)
 
-    def check():
+    def stop():
         raise Cancelled("stop")
 
     with pytest.raises(Cancelled):
-        solve_dense(a, y, 1e-10, cpu_engine(), check=check)
+        solve_dense(a, y, 1e-10, cpu_engine(), cancel_poll=stop)
     with pytest.raises(Cancelled):
-        solve_falkon(a, y, np.arange(100), 1e-10, cpu_engine(), check=check)
+        solve_falkon(a, y, np.arange(100), 1e-10, cpu_engine(), cancel_poll=stop)
 
 
 @pytest.mark.parametrize("features", [0, 8, 2])  # 4-D, 12-D and generic rows

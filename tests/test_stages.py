@@ -102,11 +102,11 @@ def test_seeds_find_a_part_the_coarse_grid_misses():
 
 
 def test_sparse_evaluation_cancels():
-    def check():
+    def stop():
         raise Cancelled("stop")
 
     with pytest.raises(Cancelled):
-        evaluate_sparse(sphere_sdf, 64, check=check)
+        evaluate_sparse(sphere_sdf, 64, cancel_poll=stop)
 
 
 def two_spheres(p):

@@ -118,7 +118,7 @@ def test_blended_field_keeps_the_fit_near_the_data_and_the_winding_sign_far_away
 
     p, n = sphere_points(2000, radius=0.3, seed=6)
 
-    def wrong_far_away(q, check=None):
+    def wrong_far_away(q, cancel_poll=None):
         # Right near the sphere (signed distance), wrong beyond 0.2 from it: inside again.
         r = np.linalg.norm(q, axis=1)
         return np.where(r < 0.5, r - 0.3, 0.7 - r)

@@ -15,7 +15,7 @@ from scipy.linalg import lapack, solve_triangular
 BLOCK = 1024
 # Below this size one LAPACK call takes under about 0.1 s and is not worth splitting.
 SINGLE_CALL = 2500
-# Floating-point operations between two calls of ``check`` (about 0.05 s on one core of the reference
+# Floating-point operations between two calls of ``cancel_poll`` (about 0.05 s on one core of the reference
 # CPU, so that a cancel request is seen within 0.5 s even on a busy machine).
 FLOPS_PER_CHECK = 1.5e9
 
@@ -25,7 +25,7 @@ class NotPositiveDefinite(np.linalg.LinAlgError):
 
 
 def cholesky(
-    a: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK, overwrite: bool = False
+    a: np.ndarray, cancel_poll: Callable[[], None] | None = None, block: int = BLOCK, overwrite: bool = False
 ) -> np.ndarray:
     """Lower Cholesky factor ``L`` with ``a = L L^T``, computed in place of a copy of ``a`` (or of
     ``a`` itself with ``overwrite``, when it is a C-contiguous float64 array).
@@ -37,13 +37,13 @@ def cholesky(
         L, info = lapack.dpotrf(np.asarray(a, dtype=np.float64), lower=1, clean=1)
         if info != 0:
             raise NotPositiveDefinite(f"leading minor {info} is not positive definite")
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         return L
     own = overwrite and a.dtype == np.float64 and a.flags.c_contiguous
     L = a if own else np.array(a, dtype=np.float64, order="C", copy=True)
-    if check is not None:
-        check()
+    if cancel_poll is not None:
+        cancel_poll()
     for k in range(0, n, block):
         e = min(n, k + block)
         if k > 0:
@@ -53,8 +53,8 @@ def cholesky(
             rows = max(256, int(FLOPS_PER_CHECK / (2.0 * k * (e - k))))
             for r in range(k, n, rows):
                 L[r : r + rows, k:e] -= L[r : r + rows, :k] @ right
-                if check is not None:
-                    check()
+                if cancel_poll is not None:
+                    cancel_poll()
         d, info = lapack.dpotrf(L[k:e, k:e], lower=1, clean=1)
         if info != 0:
             raise NotPositiveDefinite(f"leading minor {k + info} is not positive definite")
@@ -65,16 +65,16 @@ def cholesky(
             rows = max(256, int(FLOPS_PER_CHECK / float((e - k) * (e - k))))
             for r in range(e, n, rows):
                 L[r : r + rows, k:e] = solve_triangular(d, L[r : r + rows, k:e].T, lower=True, check_finite=False).T
-                if check is not None:
-                    check()
+                if cancel_poll is not None:
+                    cancel_poll()
             L[k:e, e:] = 0.0
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
     return L
 
 
 def gram_of_factor(
-    L: np.ndarray, check: Callable[[], None] | None = None, block: int = BLOCK, scale: float = 1.0
+    L: np.ndarray, cancel_poll: Callable[[], None] | None = None, block: int = BLOCK, scale: float = 1.0
 ) -> np.ndarray:
     """``S = scale * L^T L`` for lower-triangular ``L`` (n, n); only the lower triangle of ``S`` is
     filled."""
@@ -89,8 +89,8 @@ def gram_of_factor(
             S[i:e, c : min(e, c + cols)] = left @ L[i:, c : min(e, c + cols)]
             if scale != 1.0:
                 S[i:e, c : min(e, c + cols)] *= scale
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
     return S
 
 

@@ -52,7 +52,7 @@ COARSE_GRID = 48  # cells per side of the grid the coarse fit is sampled on
 # override there, 1.000 without; docs/scans.md).
 FAR_NEAR_CELLS = 0.5
 
-Check = Optional[Callable[[], None]]
+CancelPoll = Optional[Callable[[], None]]
 Step = Optional[Callable[[float], None]]
 
 
@@ -121,7 +121,7 @@ class PoUFunction:
     """
 
     def __init__(self, lo, h, dims, start, count, cu, beta, coarse: KernelFunction, engine: Engine, features=None,
-                 far: FarField | None = None, check: Check = None):
+                 far: FarField | None = None, cancel_poll: CancelPoll = None):
         self.lo, self.h, self.dims = float(lo), float(h), int(dims)
         self.start, self.count = start, count
         self.cu = np.ascontiguousarray(cu)  # (D, C)
@@ -136,19 +136,19 @@ class PoUFunction:
         g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
         nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
-        f0 = coarse(nodes, check=check)
+        f0 = coarse(nodes, cancel_poll=cancel_poll)
         if far is not None:
-            w = far(nodes, check)
+            w = far(nodes, cancel_poll)
             d, _ = cKDTree(far.points).query(nodes, distance_upper_bound=FAR_NEAR_CELLS * self.f0_step, workers=-1)
             f0 = np.where(np.isfinite(d), f0, follow_winding(f0, w, winding_scale(w, f0)))
         self.f0_grid = np.ascontiguousarray(f0.reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
 
-    def __call__(self, x: np.ndarray, check: Check = None) -> np.ndarray:
+    def __call__(self, x: np.ndarray, cancel_poll: CancelPoll = None) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)
         phi = None if self.features is None else self.features(x)
         qu, qr = split_unit(homogeneous(x, phi))
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         if isinstance(self.engine, NumbaEngine):
             lim = ACUTE_MIN_LAST
             acute = qu.shape[1] == 4 and bool(qu[:, 3].min() >= lim) and bool(self.cu[3].min() >= lim)
@@ -157,9 +157,9 @@ class PoUFunction:
                                   self.beta, self.f0_grid, self.f0_lo, self.f0_step, acute)
         idx, w = pk.corner_weights(x, self.lo, self.h, self.dims)
         f0 = pk.interpolate(self.f0_grid, self.f0_lo, self.f0_step, x)
-        return self._generic(qu, qr, idx, w, f0, check)
+        return self._generic(qu, qr, idx, w, f0, cancel_poll)
 
-    def _generic(self, qu, qr, idx, w, f0, check: Check):
+    def _generic(self, qu, qr, idx, w, f0, cancel_poll: CancelPoll):
         """Same sum through ``engine.kernel_sum``, one patch at a time (for the PyTorch engines)."""
         n = len(qu)
         out = np.zeros(n)
@@ -173,8 +173,8 @@ class PoUFunction:
         p, q, ww = p[order], q[order], ww[order]
         bounds = np.flatnonzero(np.r_[True, p[1:] != p[:-1], True])
         for s, e in zip(bounds[:-1], bounds[1:]):
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             patch = p[s]
             cs = slice(self.start[patch], self.start[patch] + self.count[patch])
             cu = np.ascontiguousarray(self.cu[:, cs].T)
@@ -214,7 +214,7 @@ def fit_pou(
     points_per_patch: int = POINTS_PER_PATCH,
     coarse_points: int = COARSE_POINTS,
     seed: int = 0,
-    check: Check = None,
+    cancel_poll: CancelPoll = None,
     step: Step = None,
 ):
     """Fit the partition-of-unity function to labelled constraints.
@@ -268,7 +268,7 @@ def fit_pou(
     # The coarse fit reuses the given constraints of the chosen points (same eps, same features).
     rows = np.concatenate([sub, sub + n])
     ac, yc = (a if coarse_a is None else coarse_a)[rows], y[rows]
-    alpha_c, _ = solve_dense(ac, yc, lam, engine, check=check)
+    alpha_c, _ = solve_dense(ac, yc, lam, engine, cancel_poll=cancel_poll)
     coarse = KernelFunction(ac, alpha_c, engine, features=features if coarse_a is None else None)
     if step is not None:
         step(0.05)
@@ -303,8 +303,8 @@ def fit_pou(
         try:
             batch = max(64, len(jobs) // 50)
             for b in range(0, len(jobs), batch):
-                if check is not None:
-                    check()
+                if cancel_poll is not None:
+                    cancel_poll()
                 results.extend(ex.map(work, jobs[b : b + batch]))
                 if step is not None:
                     step(0.05 + 0.95 * min(1.0, (b + batch) / max(1, len(jobs))))
@@ -335,8 +335,9 @@ def fit_pou(
         coarse_points=n_coarse,
         patch_lam=local_lam,
     )
-    far = None if normals is None else FarField(x, normals, seed=seed, check=check)
-    return PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far, check=check), info
+    far = None if normals is None else FarField(x, normals, seed=seed, cancel_poll=cancel_poll)
+    fn = PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far, cancel_poll=cancel_poll)
+    return fn, info
 
 
 def _numba_threads() -> int:

@@ -25,7 +25,7 @@ from ..kernel.engines import Engine
 from ..kernel.neural_spline import homogeneous, split_unit
 from . import blocked_linalg as linalg
 
-Check = Optional[Callable[[], None]]
+CancelPoll = Optional[Callable[[], None]]
 Step = Optional[Callable[[float], None]]
 
 
@@ -80,14 +80,14 @@ class KernelFunction:
     def __post_init__(self):
         self._cu, self._cr = split_unit(self.centres)
 
-    def __call__(self, x: np.ndarray, check: Check = None) -> np.ndarray:
+    def __call__(self, x: np.ndarray, cancel_poll: CancelPoll = None) -> np.ndarray:
         """Values at unit-box points ``x`` (N, 3): (N,) float64."""
         phi = None if self.features is None else self.features(x)
         qu, qr = split_unit(homogeneous(x, phi))
-        return self.engine.kernel_sum(qu, qr, self._cu, self._cr, self.alpha, check)
+        return self.engine.kernel_sum(qu, qr, self._cu, self._cr, self.alpha, cancel_poll)
 
 
-def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, check: Check = None):
+def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, cancel_poll: CancelPoll = None):
     """Exact solve of ``(G + N lam I) alpha = y``.
 
     Parameters
@@ -106,13 +106,13 @@ def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, check:
     """
     u, r = split_unit(a)
     n = len(a)
-    G = engine.gram(u, r, n * lam, check=check)
-    if check is not None:
-        check()
+    G = engine.gram(u, r, n * lam, cancel_poll=cancel_poll)
+    if cancel_poll is not None:
+        cancel_poll()
     jitter = 0.0
     while True:
         try:
-            L = linalg.cholesky(G, check=check)
+            L = linalg.cholesky(G, cancel_poll=cancel_poll)
             break
         except linalg.NotPositiveDefinite:
             # Exactly repeated constraints, or lam = 0 with a numerically singular Gram matrix.
@@ -132,7 +132,7 @@ def solve_falkon(
     *,
     max_iter: int = 200,
     tol: float = 1e-9,
-    check: Check = None,
+    cancel_poll: CancelPoll = None,
     step: Step = None,
 ):
     """Nystrom kernel ridge regression by Falkon's preconditioned conjugate gradient.
@@ -165,9 +165,9 @@ def solve_falkon(
     xu, xr = split_unit(a)
     cu, cr = xu[centre_index], xr[centre_index]
     m = len(centre_index)
-    kmm = engine.kernel_matrix(cu, cr, cu, cr, check=check)
-    if check is not None:
-        check()
+    kmm = engine.kernel_matrix(cu, cr, cu, cr, cancel_poll=cancel_poll)
+    if cancel_poll is not None:
+        cancel_poll()
     # T = chol(K_MM + jitter I) (here lower: K_MM = L L^T and Falkon's T = L^T). The factorisation
     # overwrites K_MM; in the rare case that the jitter is too small, K_MM is computed again.
     base = 1e-14 * float(np.trace(kmm)) / m
@@ -175,26 +175,26 @@ def solve_falkon(
     while True:
         kmm[np.diag_indices(m)] += jitter
         try:
-            L = linalg.cholesky(kmm, check=check, overwrite=True)
+            L = linalg.cholesky(kmm, cancel_poll=cancel_poll, overwrite=True)
             break
         except linalg.NotPositiveDefinite:
             jitter *= 10.0
-            kmm = engine.kernel_matrix(cu, cr, cu, cr, check=check)
+            kmm = engine.kernel_matrix(cu, cr, cu, cr, cancel_poll=cancel_poll)
     del kmm
     if step is not None:
         step(0.2)
     # A = chol(T T^T / M + lam I) = chol(L^T L / M + lam I).
-    S = linalg.gram_of_factor(L, check=check, scale=1.0 / m)
+    S = linalg.gram_of_factor(L, cancel_poll=cancel_poll, scale=1.0 / m)
     S[np.diag_indices(m)] += max(lam, 1e-15)
-    if check is not None:
-        check()
-    La = linalg.cholesky(S, check=check, overwrite=True)
+    if cancel_poll is not None:
+        cancel_poll()
+    La = linalg.cholesky(S, cancel_poll=cancel_poll, overwrite=True)
     del S
     if step is not None:
         step(0.4)
 
     def knm_normal(u, v):
-        return engine.normal_product(xu, xr, cu, cr, u, v, check=check)
+        return engine.normal_product(xu, xr, cu, cr, u, v, cancel_poll=cancel_poll)
 
     def precond_apply(beta):  # B beta = T^{-1} A^{-1} beta
         return linalg.solve_lower(L, linalg.solve_lower(La, beta, transpose=True), transpose=True)

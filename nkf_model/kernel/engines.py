@@ -5,7 +5,7 @@ which one runs. Inputs are homogeneous vectors already split into unit vectors `
 norms ``r`` (N,) by :func:`nkf_model.kernel.neural_spline.split_unit`; ``K(a_i, b_j) = r_i r_j g_ij / pi``.
 
 Long sums are cut into chunks of about :data:`CHUNK_EVALS` kernel evaluations, and the optional
-``check`` callable (which raises to cancel) runs between chunks.
+``cancel_poll`` callable (which raises to cancel) runs between chunks.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from ..errors import InvalidParameterError, MethodUnavailableError
 # Kernel evaluations per chunk: about 0.02 s at 2.5 G evaluations/s on an idle 2-core CPU, so that a
 # cancel request is seen well within 0.5 s even when the machine is busy with other work.
 CHUNK_EVALS = 50_000_000
-Check = Optional[Callable[[], None]]
+CancelPoll = Optional[Callable[[], None]]
 
 
 def _chunks(n_rows: int, n_cols: int, per_chunk: int = CHUNK_EVALS, dim: int = 4):
@@ -40,22 +40,22 @@ class Engine:
     name = "base"
     device = "cpu"
 
-    def kernel_sum(self, qu, qr, cu, cr, w, check: Check = None) -> np.ndarray:
+    def kernel_sum(self, qu, qr, cu, cr, w, cancel_poll: CancelPoll = None) -> np.ndarray:
         """``sum_j K(q_i, c_j) w_j`` for every query: (Nq,) float64."""
         raise NotImplementedError
 
-    def kernel_matrix(self, qu, qr, cu, cr, check: Check = None) -> np.ndarray:
+    def kernel_matrix(self, qu, qr, cu, cr, cancel_poll: CancelPoll = None) -> np.ndarray:
         """``K(q_i, c_j)``: (Nq, Nc) float64."""
         raise NotImplementedError
 
-    def gram(self, u, r, diag: float, check: Check = None) -> np.ndarray:
+    def gram(self, u, r, diag: float, cancel_poll: CancelPoll = None) -> np.ndarray:
         """``K(a_i, a_j) + diag * I`` (N, N) float64 for unit rows ``u`` and norms ``r``; only the
         lower triangle is guaranteed (what a Cholesky factorisation reads)."""
-        g = self.kernel_matrix(u, r, u, r, check=check)
+        g = self.kernel_matrix(u, r, u, r, cancel_poll=cancel_poll)
         g[np.diag_indices(len(g))] += diag
         return g
 
-    def normal_product(self, xu, xr, cu, cr, u, v, check: Check = None) -> np.ndarray:
+    def normal_product(self, xu, xr, cu, cr, u, v, cancel_poll: CancelPoll = None) -> np.ndarray:
         """``K^T (K u + v)`` with ``K = K(x, c)`` (N, M), never stored: (M,) float64."""
         raise NotImplementedError
 
@@ -95,7 +95,7 @@ class NumbaEngine(Engine):
             return all(len(u) == 0 or float((u @ e).min()) >= lim for u in unit_vectors)
         return all(u.shape[1] == 4 and (len(u) == 0 or float(u[:, 3].min()) >= lim) for u in unit_vectors)
 
-    def kernel_sum(self, qu, qr, cu, cr, w, check: Check = None):
+    def kernel_sum(self, qu, qr, cu, cr, w, cancel_poll: CancelPoll = None):
         beta = np.ascontiguousarray(cr * w)
         out = np.empty(len(qu))
         four = cu.shape[1] == 4
@@ -106,8 +106,8 @@ class NumbaEngine(Engine):
         else:
             ct = np.ascontiguousarray(cu.T)
         for s, e in _chunks(len(qu), len(cu), dim=cu.shape[1]):
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             q = np.ascontiguousarray(qu[s:e])
             with self._lock:
                 if four:
@@ -118,32 +118,32 @@ class NumbaEngine(Engine):
                     out[s:e] = self._nk.gsum(q, ct, beta)
         return out * qr / math.pi
 
-    def kernel_matrix(self, qu, qr, cu, cr, check: Check = None):
+    def kernel_matrix(self, qu, qr, cu, cr, cancel_poll: CancelPoll = None):
         ct = np.ascontiguousarray(cu.T)
         acute = self._acute(qu, cu)
         g = np.empty((len(qu), len(cu)))
         # Writing the matrix is slower per entry than summing: smaller chunks.
         for s, e in _chunks(len(qu), len(cu), per_chunk=CHUNK_EVALS // 10, dim=cu.shape[1]):
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             with self._lock:
                 g[s:e] = self._nk.gmatrix(np.ascontiguousarray(qu[s:e]), ct, acute)
             g[s:e] *= qr[s:e, None] / math.pi
             g[s:e] *= cr[None, :]
         return g
 
-    def gram(self, u, r, diag: float, check: Check = None) -> np.ndarray:
+    def gram(self, u, r, diag: float, cancel_poll: CancelPoll = None) -> np.ndarray:
         # One fused pass over the lower triangle (half the kernel values, no scaling passes).
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         with self._lock:
             g = self._nk.gram_lower(np.ascontiguousarray(u), np.ascontiguousarray(u.T),
                                     np.ascontiguousarray(r, dtype=np.float64), float(diag), self._acute(u))
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         return g
 
-    def normal_product(self, xu, xr, cu, cr, u, v, check: Check = None):
+    def normal_product(self, xu, xr, cu, cr, u, v, cancel_poll: CancelPoll = None):
         ct = np.ascontiguousarray(cu.T)
         us = np.ascontiguousarray(cr * u)
         ws = np.ascontiguousarray(xr / math.pi)
@@ -151,8 +151,8 @@ class NumbaEngine(Engine):
         nchunks = max(1, self._numba.get_num_threads())
         acute = self._acute(xu, cu)
         for s, e in _chunks(len(xu), len(cu), dim=cu.shape[1]):
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             with self._lock:
                 acc += self._nk.gnormal(
                     np.ascontiguousarray(xu[s:e]), ct, us, np.ascontiguousarray(v[s:e]),
@@ -182,32 +182,32 @@ class TorchEngine(Engine):
         d = self._torch.cdist(q, c, compute_mode="donot_use_mm_for_euclid_dist")
         return angle_term_torch(d * d)
 
-    def kernel_sum(self, qu, qr, cu, cr, w, check: Check = None):
+    def kernel_sum(self, qu, qr, cu, cr, w, cancel_poll: CancelPoll = None):
         c = self._t(cu)
         beta = self._t(cr * w)
         out = np.empty(len(qu))
         for s, e in _chunks(len(qu), len(cu), per_chunk=CHUNK_EVALS // 4):
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             out[s:e] = (self._g(self._t(qu[s:e]), c) @ beta).cpu().numpy()
         return out * qr / math.pi
 
-    def kernel_matrix(self, qu, qr, cu, cr, check: Check = None):
+    def kernel_matrix(self, qu, qr, cu, cr, cancel_poll: CancelPoll = None):
         c = self._t(cu)
         g = np.empty((len(qu), len(cu)))
         for s, e in _chunks(len(qu), len(cu), per_chunk=CHUNK_EVALS // 4):
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             g[s:e] = self._g(self._t(qu[s:e]), c).cpu().numpy()
         return g * (qr[:, None] / math.pi) * cr[None, :]
 
-    def normal_product(self, xu, xr, cu, cr, u, v, check: Check = None):
+    def normal_product(self, xu, xr, cu, cr, u, v, cancel_poll: CancelPoll = None):
         c = self._t(cu)
         us = self._t(cr * u)
         acc = self._torch.zeros(len(cu), dtype=self._torch.float64, device=self._dev)
         for s, e in _chunks(len(xu), len(cu), per_chunk=CHUNK_EVALS // 4):
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             g = self._g(self._t(xu[s:e]), c)
             w = self._t(xr[s:e] / math.pi)
             t = w * (w * (g @ us) + self._t(v[s:e]))

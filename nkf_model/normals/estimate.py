@@ -78,7 +78,7 @@ SIGMA = 1.0  # width of that fade, in mean distances to the 4 nearest neighbours
 ORIENTATIONS = ("outward", "up", "viewpoint")
 _CHUNK = 25_000  # points per KD-tree query / eigen-decomposition batch (about 0.2 s)
 
-Check = Optional[Callable[[], None]]
+CancelPoll = Optional[Callable[[], None]]
 
 
 @dataclass
@@ -139,7 +139,7 @@ def check_orientation(orientation, viewpoints) -> str:
     return orientation
 
 
-def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] = None, check: Check = None):
+def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] = None, cancel_poll: CancelPoll = None):
     """Unoriented unit normals by PCA over the ``k`` nearest neighbours.
 
     Parameters
@@ -167,8 +167,8 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
     residual = np.empty(n)
     k0 = min(k, INITIAL_K)
     for s in range(0, n, _CHUNK):
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         e = min(n, s + _CHUNK)
         dist, idx = tree.query(p[s:e], k=k, workers=-1)
         nb = p[idx]  # (c, k, 3)
@@ -202,14 +202,14 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
     return normals, residual
 
 
-def _graph(points, normals, tree, k, check: Check, noise=None):
+def _graph(points, normals, tree, k, cancel_poll: CancelPoll, noise=None):
     """Symmetric k-nearest-neighbour graph with orientation costs as a sparse matrix."""
     n = len(points)
     k = int(min(k + 1, n))
     rows, cols, cost = [], [], []
     for s in range(0, n, _CHUNK):
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         e = min(n, s + _CHUNK)
         dist, idx = tree.query(points[s:e], k=k, workers=-1)
         i = np.repeat(np.arange(s, e), k - 1)
@@ -273,7 +273,7 @@ def _basis(d):
 
 
 def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=None, noise: float = 0.0,
-                     layers=None, check: Check = None):
+                     layers=None, cancel_poll: CancelPoll = None):
     """Signed votes (N,) for each normal from the views in which its point is visible.
 
     A view is an orthographic projection along one of ``directions`` (unit vectors pointing from
@@ -311,8 +311,8 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
                     a, b = _basis(d)
                     views.append((s, a, b, d, True))
     for origin, a, b, d, perspective in views:
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         rel = p - origin
         u = rel @ a
         v = rel @ b
@@ -362,15 +362,15 @@ def _relations(g, points, normals, noise=None):
     return coo_matrix((w * rel, (i, j)), shape=g.shape).tocsr()
 
 
-def _consensus(g, points, normals, sign, votes, check: Check, rounds: int = CONSENSUS_ROUNDS, noise=None):
+def _consensus(g, points, normals, sign, votes, cancel_poll: CancelPoll, rounds: int = CONSENSUS_ROUNDS, noise=None):
     """Flip isolated wrong signs: repeatedly give each point the sign its neighbours and its own
     view votes agree on (iterated conditional modes on ``-sum_ij A_ij s_i s_j - sum_i v_i s_i``).
     Only points whose evidence clearly disagrees with their sign flip, so the iteration settles."""
     a = _relations(g, points, normals, noise)
     s = sign.copy()
     for _ in range(rounds):
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         field = a @ s + votes
         flip = field * s < -0.5
         if not flip.any():
@@ -385,7 +385,7 @@ def _components(n, rows, cols):
     return connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
 
 
-def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, noise=None):
+def _flip_pieces(g, points, normals, sign, seed, cancel_poll: CancelPoll, rounds: int = 3, noise=None):
     """Flip whole undecided pieces that disagree with their surroundings.
 
     Points the views did not decide, joined by confident edges (cost < 0.5), form pieces (say the
@@ -406,8 +406,8 @@ def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, 
     bw = np.where(free[bj], 0.25, 1.0)
     s = sign.copy()
     for _ in range(rounds):
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         vote = np.bincount(labels[bi], weights=bw * br * s[bi] * s[bj], minlength=n_pieces)
         flip = vote < 0
         if not flip.any():
@@ -416,7 +416,7 @@ def _flip_pieces(g, points, normals, sign, seed, check: Check, rounds: int = 3, 
     return s
 
 
-def layer_sides(points, normals, spacing, tree, noise: float = 0.0, check: Check = None, index=None):
+def layer_sides(points, normals, spacing, tree, noise: float = 0.0, cancel_poll: CancelPoll = None, index=None):
     """Points of another layer above and below each point's plane: counts (N,), (N,) (int64), or
     (M,), (M,) for the points ``index`` (M,) only.
 
@@ -438,8 +438,8 @@ def layer_sides(points, normals, spacing, tree, noise: float = 0.0, check: Check
     reach = LAYER_RADIUS * spacing
     min_h = max(LAYER_OFFSET * spacing, SIG_NOISE * noise)
     for s in range(0, n, _CHUNK):
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         e = min(n, s + _CHUNK)
         q = index[s:e]
         dist, idx = tree.query(p[q], k=k, workers=-1)
@@ -456,7 +456,8 @@ def layer_sides(points, normals, spacing, tree, noise: float = 0.0, check: Check
     return above, below
 
 
-def layer_votes(points, normals, spacing, tree, noise: float = 0.0, check: Check = None, sides=None) -> np.ndarray:
+def layer_votes(points, normals, spacing, tree, noise: float = 0.0, cancel_poll: CancelPoll = None,
+                sides=None) -> np.ndarray:
     """Which side of each point its thin part's other face lies on: votes (N,) in {-1, 0, +1}.
 
     From :func:`layer_sides` (or ``sides``, its result): when at least :data:`LAYER_MIN` layer
@@ -464,7 +465,7 @@ def layer_votes(points, normals, spacing, tree, noise: float = 0.0, check: Check
     normal points away from its other face); the mirror case gives -1; anything else (no other
     layer, layers on both sides) gives 0.
     """
-    above, below = sides if sides is not None else layer_sides(points, normals, spacing, tree, noise, check)
+    above, below = sides if sides is not None else layer_sides(points, normals, spacing, tree, noise, cancel_poll)
     return np.where((below >= LAYER_MIN) & (above == 0), 1.0,
                     np.where((above >= LAYER_MIN) & (below == 0), -1.0, 0.0))
 
@@ -529,7 +530,7 @@ def _seeded_propagation(g, points, normals, seed_sign, noise=None):
     return sign, int(n_pieces)
 
 
-def _harmonic_signs(g, points, normals, sign, seed, noise=None, check: Check = None):
+def _harmonic_signs(g, points, normals, sign, seed, noise=None, cancel_poll: CancelPoll = None):
     """Signs (N,) from a global least-squares fit over the confident edges, seeded by the views.
 
     The spanning tree takes each point's sign along one path from a seed, so one wrong edge on that
@@ -558,13 +559,13 @@ def _harmonic_signs(g, points, normals, sign, seed, noise=None, check: Check = N
     degree = np.asarray(abs(a).sum(axis=1)).ravel()
     c = np.where(seed != 0, HARMONIC_SEED, 1e-6 * HARMONIC_SEED)
     v = np.where(seed != 0, seed, sign)
-    if check is not None:
-        check()
+    if cancel_poll is not None:
+        cancel_poll()
     s = spsolve((diags(degree + c) - a).tocsc(), c * v)
     return np.where(s >= 0, 1.0, -1.0)
 
 
-def _winding_signs(points, normals, sign, fixed, layer, spacing, check: Check = None):
+def _winding_signs(points, normals, sign, fixed, layer, spacing, cancel_poll: CancelPoll = None):
     """Signs (N,) refined by the winding number of the oriented cloud (closed objects only).
 
     For a consistently oriented closed surface the winding number's gradient at each point, from
@@ -598,17 +599,17 @@ def _winding_signs(points, normals, sign, fixed, layer, spacing, check: Check = 
         free = ~fixed[idx] & (np.abs(f) >= need[idx]) & (f != 0)
         return np.where(free, np.where(f > 0, 1.0, -1.0), s[idx])
 
-    field = WindingGradient(points[sub], normals[sub], WINDING_EXCLUDE * sub_spacing, check=check)
+    field = WindingGradient(points[sub], normals[sub], WINDING_EXCLUDE * sub_spacing, cancel_poll=cancel_poll)
     s = sign.copy()
     for _ in range(WINDING_ROUNDS):
-        new = follow(s, field(s[sub], check=check), sub)
+        new = follow(s, field(s[sub], cancel_poll=cancel_poll), sub)
         changed = bool((new != s[sub]).any())
         s[sub] = new
         if not changed:
             break
     if len(sub) < n:
         rest = np.setdiff1d(np.arange(n), sub)
-        s[rest] = follow(s, field(s[sub], points[rest], check=check), rest)
+        s[rest] = follow(s, field(s[sub], points[rest], cancel_poll=cancel_poll), rest)
         return s, None
     return s, field
 
@@ -662,7 +663,7 @@ def orient_normals(
     noise: Optional[np.ndarray] = None,
     residual: Optional[np.ndarray] = None,
     learned: bool = True,
-    check: Check = None,
+    cancel_poll: CancelPoll = None,
 ):
     """Give unoriented unit normals consistent signs.
 
@@ -694,19 +695,19 @@ def orient_normals(
     info : OrientationInfo
     """
     sign, state, info = _orient(points, normals, orientation=orientation, viewpoints=viewpoints, k=k, tree=tree,
-                                noise=noise, residual=residual, check=check)
-    return _checked(sign, state, info, learned, check)
+                                noise=noise, residual=residual, cancel_poll=cancel_poll)
+    return _checked(sign, state, info, learned, cancel_poll)
 
 
-def _checked(sign, state, info, learned: bool, check: Check):
+def _checked(sign, state, info, learned: bool, cancel_poll: CancelPoll):
     """Oriented normals (N, 3) and ``info``, after the learned sign check where it applies."""
     if learned and info.orientation == "outward":
-        sign, flips = sign_check.flip_wrong(state, check=check)
+        sign, flips = sign_check.flip_wrong(state, cancel_poll=cancel_poll)
         info.learned_check, info.learned_flips = flips is not None, flips or 0
     return state.normals * sign[:, None], info
 
 
-def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residual, check):
+def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residual, cancel_poll):
     """Signs (N,), the :class:`~nkf_model.normals.sign_check.OrientationState` behind them and the
     :class:`OrientationInfo`: :func:`orient_normals` without the learned check (also used to
     train it)."""
@@ -730,15 +731,15 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     # need them for every point (layer votes, the winding-number step); scans for the views'.
     if orientation == "viewpoint":
         sides = None
-        layers = tuple(c > 0 for c in layer_sides(p, nrm, spacing, tree, noise_level, check, index=sub))
+        layers = tuple(c > 0 for c in layer_sides(p, nrm, spacing, tree, noise_level, cancel_poll, index=sub))
         sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, viewpoints=vp, noise=noise_level,
-                                  layers=layers, check=check)
+                                  layers=layers, cancel_poll=cancel_poll)
     else:
-        sides = layer_sides(p, nrm, spacing, tree, noise_level, check)
+        sides = layer_sides(p, nrm, spacing, tree, noise_level, cancel_poll)
         layers = (sides[0][sub] > 0, sides[1][sub] > 0)
         dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
         sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, directions=-dirs, noise=noise_level,
-                                  layers=layers, check=check)
+                                  layers=layers, cancel_poll=cancel_poll)
     votes = np.zeros(n)
     weight = np.zeros(n)
     votes[sub], weight[sub] = sv, sw
@@ -746,26 +747,26 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     # A few scanners give few views: one clear view decides there.
     min_weight = VOTE_WEIGHT if orientation != "viewpoint" else VIEWPOINT_VOTE_WEIGHT
     seed = np.where((agree >= VOTE_AGREEMENT) & (weight >= min_weight), np.sign(votes), 0.0)
-    if check is not None:
-        check()
-    g = _graph(p, nrm, tree, k, check, noise)
+    if cancel_poll is not None:
+        cancel_poll()
+    g = _graph(p, nrm, tree, k, cancel_poll, noise)
     n_seeded = int((seed != 0).sum())
     view_seed = seed
     sign, pieces = _seeded_propagation(g, p, nrm, seed, noise)
-    sign = _flip_pieces(g, p, nrm, sign, seed, check, noise=noise)
+    sign = _flip_pieces(g, p, nrm, sign, seed, cancel_poll, noise=noise)
     if orientation != "viewpoint":
         # Thin parts with both faces sampled belong to objects (a scanner sees one side of each
         # surface). Their layer votes join the global fit only: as hard seeds of the spanning tree,
         # a few wrong ones (the facing sides of a narrow gap) would decide everything behind them.
         lv = layer_votes(p, nrm, spacing, tree, sides=sides)
         seed = _layer_seeds(g, nrm, lv, seed)
-    sign = _harmonic_signs(g, p, nrm, sign, seed, noise, check)
-    sign = _consensus(g, p, nrm, sign, votes, check, noise=noise)
+    sign = _harmonic_signs(g, p, nrm, sign, seed, noise, cancel_poll)
+    sign = _consensus(g, p, nrm, sign, votes, cancel_poll, noise=noise)
     if orientation == "outward":
         # Closed objects: the winding number's field says which side is in where the views saw
         # nothing (open scans and terrain have no inside).
         sign, winding = _winding_signs(p, nrm, sign, view_seed != 0, (sides[0] > 0) | (sides[1] > 0), spacing,
-                                       check)
+                                       cancel_poll)
     else:
         winding = None
     info = OrientationInfo(orientation=orientation, pieces=pieces,
@@ -788,7 +789,7 @@ def estimate_normals(
     k: int = DEFAULT_K,
     orientation: Optional[str] = None,
     viewpoints=None,
-    check: Check = None,
+    cancel_poll: CancelPoll = None,
 ):
     """Oriented unit normals for a point cloud without normals.
 
@@ -814,17 +815,17 @@ def estimate_normals(
         raise InvalidParameterError(f"normal neighbours k must be an integer from 3 to 200, got {k!r}")
     vp = check_viewpoints(viewpoints)
     orientation = check_orientation(orientation, vp)
-    return _checked(*_estimate(points, k, orientation, vp, check), learned=True, check=check)
+    return _checked(*_estimate(points, k, orientation, vp, cancel_poll), learned=True, cancel_poll=cancel_poll)
 
 
-def _estimate(points, k: int, orientation: str, viewpoints, check: Check = None):
+def _estimate(points, k: int, orientation: str, viewpoints, cancel_poll: CancelPoll = None):
     """PCA normals of ``points`` oriented without the learned check: what :func:`_orient`
     returns (also used to train the check, :mod:`nkf_model.train.sign_check_training`)."""
     p = np.ascontiguousarray(points, dtype=np.float64)
     tree = cKDTree(p)
-    nrm, residual = pca_normals(p, k, tree=tree, check=check)
+    nrm, residual = pca_normals(p, k, tree=tree, cancel_poll=cancel_poll)
     # One noise level for the whole cloud, from its flattest quarter: residuals also grow with
     # curvature and at sharp edges, where offsets along the normals are geometry, not noise.
     noise = np.full(len(p), float(np.quantile(residual, NOISE_QUANTILE)))
     return _orient(p, nrm, orientation=orientation, viewpoints=viewpoints, k=DEFAULT_GRAPH_K, tree=tree,
-                   noise=noise, residual=residual, check=check)
+                   noise=noise, residual=residual, cancel_poll=cancel_poll)

@@ -97,7 +97,7 @@ class OrientationState:
     winding: object = None
 
 
-def point_features(state: OrientationState, check=None) -> np.ndarray:
+def point_features(state: OrientationState, cancel_poll=None) -> np.ndarray:
     """Features (N, len(FEATURES)) float32 of every point, in the order of :data:`FEATURES`."""
     from ..points.winding import FarField, WindingGradient
 
@@ -114,13 +114,13 @@ def point_features(state: OrientationState, check=None) -> np.ndarray:
     f["layer_vote_rel"] = state.layer_vote * s
     f["layer_seed_rel"] = state.layer_seed * s
     winding = state.winding if state.winding is not None else WindingGradient(p, nrm, WINDING_EXCLUDE * sp,
-                                                                              check=check)
-    grad = winding(s, check=check)
+                                                                              cancel_poll=cancel_poll)
+    grad = winding(s, cancel_poll=cancel_poll)
     f["wgrad"] = -np.sum(grad * on, axis=1) * sp
-    field = FarField(p, on, check=check)
+    field = FarField(p, on, cancel_poll=cancel_poll)
     for d in OFFSETS:
-        f[f"w_front{d}"] = field(p + d * sp * on, check)
-        f[f"w_back{d}"] = field(p - d * sp * on, check)
+        f[f"w_front{d}"] = field(p + d * sp * on, cancel_poll)
+        f[f"w_back{d}"] = field(p - d * sp * on, cancel_poll)
     g = state.graph.tocoo()
     rel = edge_relation(p, nrm, g.row, g.col, state.residual)
     agree = np.bincount(g.row, weights=rel * s[g.row] * s[g.col], minlength=n)
@@ -204,13 +204,13 @@ def default_check() -> Optional[SignCheck]:
     return _LOADED["net"]
 
 
-def flip_wrong(state: OrientationState, net: Optional[SignCheck] = None, check=None):
+def flip_wrong(state: OrientationState, net: Optional[SignCheck] = None, cancel_poll=None):
     """Signs (N,) with the points the network finds wrong (probability >= FLIP_PROBABILITY)
     flipped, and the number flipped, or None where the check did not run (no network, more than
     MAX_POINTS points, fewer than 20): then the signs come back unchanged."""
     net = net if net is not None else default_check()
     if net is None or len(state.points) > MAX_POINTS or len(state.points) < 20:
         return state.sign, None
-    prob = net(point_features(state, check))
+    prob = net(point_features(state, cancel_poll))
     flip = prob >= FLIP_PROBABILITY
     return np.where(flip, -state.sign, state.sign), int(flip.sum())

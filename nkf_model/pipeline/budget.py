@@ -216,7 +216,7 @@ def plan(
     )
 
 
-def check(est: Estimate, memory_budget: float | None = None) -> None:
+def enforce(est: Estimate, memory_budget: float | None = None) -> None:
     """Raise :class:`MemoryBudgetError` if ``est`` needs more than ``memory_budget`` bytes.
 
     The message names the setting that drives the estimate: the exact solve's size

@@ -47,7 +47,7 @@ class Tracker:
         self.timings: dict[str, float] = {}
         self._t0 = time.perf_counter()
 
-    def check(self) -> None:
+    def cancel_poll(self) -> None:
         """Raise :class:`Cancelled` if the cancel event is set."""
         if self._cancel is not None and self._cancel.is_set():
             raise Cancelled("reconstruction cancelled")
@@ -61,7 +61,7 @@ class Tracker:
 
     def step(self, local_fraction: float) -> None:
         """Report that the current stage is ``local_fraction`` done, then check for cancel."""
-        self.check()
+        self.cancel_poll()
         lf = min(max(float(local_fraction), 0.0), 1.0)
         frac = self._start[self._stage] + self._width[self._stage] * lf
         frac = max(frac, self._last)

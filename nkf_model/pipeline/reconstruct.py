@@ -230,7 +230,7 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     n_in = _row_count(points)
     subset = opts.max_points is not None and n_in > opts.max_points
     plan = budget.plan_for(n_in, opts, estimate_normals=estimate_n, colors=colors is not None)
-    budget.check(plan, opts.memory_budget)
+    budget.enforce(plan, opts.memory_budget)
 
     t_start = time.perf_counter()
     engine = select_engine(opts.device)
@@ -273,7 +273,7 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
                 InputWarning, stacklevel=3,
             )
         unit_vp = None if vp is None else norm.to_unit(vp)
-        nrm, normal_info = estimate_normals(x, orientation=orient, viewpoints=unit_vp, check=track.check)
+        nrm, normal_info = estimate_normals(x, orientation=orient, viewpoints=unit_vp, cancel_poll=track.cancel_poll)
 
     track.begin("augment")
     eps_used = float(opts.eps) if opts.eps is not None else default_eps(n)
@@ -321,35 +321,37 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
         track.begin("solve")
         pou_info = None
         if kind == "dense":
-            alpha, info = solve_dense(a, y, float(lam), eng, check=track.check)
+            alpha, info = solve_dense(a, y, float(lam), eng, cancel_poll=track.cancel_poll)
             fn = KernelFunction(a, alpha, eng, features=phi)
             n_centres = len(a)
         elif kind == "falkon":
             half = farthest_point_sample(x, min(n, max_centres // 2), seed=seed)
             idx = np.concatenate([half, half + n])
-            alpha, info = solve_falkon(a, y, idx, float(lam), eng, tol=FALKON_TOL, check=track.check,
+            alpha, info = solve_falkon(a, y, idx, float(lam), eng, tol=FALKON_TOL, cancel_poll=track.cancel_poll,
                                        step=track.step)
             fn = KernelFunction(a[idx], alpha, eng, features=phi)
             n_centres = len(idx)
         else:
-            fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, check=track.check, step=track.step,
+            fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, cancel_poll=track.cancel_poll, step=track.step,
                                    features=phi, coarse_a=None if phi is None else homogeneous(xa),
                                    normals=nrm if far_field else None, patch_lam=patch_lam)
             info = SolveInfo("pou", len(a), pou_info.centres)
             n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
         if kind != "pou" and far_field:
             h = patch_spacing(x, seed=seed)
-            fn = BlendedField(fn, x, nrm, FAR_START * h, FAR_END * h, GRID_HALF, seed=seed, check=track.check)
+            fn = BlendedField(fn, x, nrm, FAR_START * h, FAR_END * h, GRID_HALF, seed=seed,
+                              cancel_poll=track.cancel_poll)
         track.begin("evaluate")
         field_ = evaluate_sparse(
-            lambda p: fn(p, check=track.check), resolution, check=track.check, step=track.step, seeds=x, close=close
+            lambda p: fn(p, cancel_poll=track.cancel_poll), resolution, cancel_poll=track.cancel_poll, step=track.step,
+            seeds=x, close=close,
         )
         return info, pou_info, n_centres, field_, eng
 
     info, pou_info, n_centres, field_, engine = run_with_cpu_fallback(fit_and_evaluate, engine)
 
     track.begin("mesh")
-    unit_v, faces = triangulate(field_, check=track.check, step=track.step)
+    unit_v, faces = triangulate(field_, cancel_poll=track.cancel_poll, step=track.step)
     if len(faces) == 0:
         raise NoSurfaceError(
             "the fitted function has no zero crossing inside the grid; check that the normals "

@@ -99,17 +99,17 @@ class _Clusters:
     sorted point), ``first`` (C + 1,) (cluster ``c`` holds rows ``first[c]:first[c+1]``), ``owner``
     (N,), the area-weighted ``centre`` (C, 3) and ``radius`` (C,) of each cluster."""
 
-    def __init__(self, points, clusters: int, seed: int = 0, check=None):
+    def __init__(self, points, clusters: int, seed: int = 0, cancel_poll=None):
         points = np.asarray(points, dtype=np.float64)
         if len(points) <= AREA_NEIGHBOURS:
             raise ValueError(f"at least {AREA_NEIGHBOURS + 1} points are needed, got {len(points)}")
         area = point_areas(points)
         k = min(clusters, len(points))
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         centres = points[farthest_point_sample(points, k, seed=seed)]
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         _, owner = cKDTree(centres).query(points)
         order = np.argsort(owner, kind="stable")
         owner, points, area = owner[order], points[order], area[order]
@@ -156,25 +156,25 @@ class FarField:
     clusters : int
         Number of clusters (every point is its own when there are fewer points).
 
-    Call it with queries (Q, 3) float64 (and ``check``, called between chunks of queries); it
-    returns (Q,) float64. ``check`` given to the constructor is called between its set-up steps.
+    Call it with queries (Q, 3) float64 (and ``cancel_poll``, called between chunks of queries); it
+    returns (Q,) float64. ``cancel_poll`` given to the constructor is called between its set-up steps.
     ``points`` (N, 3) holds the input points (sorted by cluster).
     """
 
     def __init__(self, points: np.ndarray, normals: np.ndarray, clusters: int = FAR_CLUSTERS, seed: int = 0,
-                 check=None):
-        c = _Clusters(points, clusters, seed, check)
+                 cancel_poll=None):
+        c = _Clusters(points, clusters, seed, cancel_poll)
         moment = c.sort(np.asarray(normals, dtype=np.float64)) * c.area[:, None]
         self._args = (c.centre, c.total(moment), (FAR_BETA * c.radius) ** 2)
         self._first = c.first
         self.points, self._m = c.points, np.ascontiguousarray(moment)
 
-    def __call__(self, queries: np.ndarray, check=None) -> np.ndarray:
+    def __call__(self, queries: np.ndarray, cancel_poll=None) -> np.ndarray:
         q = np.ascontiguousarray(queries, dtype=np.float64)
         out = np.empty(len(q))
-        for s in range(0, len(q), FAR_CHUNK):  # ``check`` (cancellation) between chunks
-            if check is not None:
-                check()
+        for s in range(0, len(q), FAR_CHUNK):  # ``cancel_poll`` (cancellation) between chunks
+            if cancel_poll is not None:
+                cancel_poll()
             out[s : s + FAR_CHUNK] = _clustered_sum(q[s : s + FAR_CHUNK], *self._args, self._first, self.points,
                                                     self._m)
         return out
@@ -240,26 +240,26 @@ class WindingGradient:
         Radius left out around each query, in the units of ``points``.
 
     Call it with signs (N,) in {-1, +1} (and optionally queries (Q, 3), default the points
-    themselves, and ``check``, called between chunks); it returns (Q, 3) float64.
+    themselves, and ``cancel_poll``, called between chunks); it returns (Q, 3) float64.
     """
 
     def __init__(self, points: np.ndarray, normals: np.ndarray, exclude: float, clusters: int = FAR_CLUSTERS,
-                 seed: int = 0, check=None):
-        self._c = c = _Clusters(points, clusters, seed, check)
+                 seed: int = 0, cancel_poll=None):
+        self._c = c = _Clusters(points, clusters, seed, cancel_poll)
         self._n = c.sort(np.asarray(normals, dtype=np.float64)) * c.area[:, None]
         self._far2 = np.maximum(FAR_BETA * c.radius, float(exclude) + c.radius) ** 2
         self._ex2 = float(exclude) ** 2
         self._queries = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
 
-    def __call__(self, signs: np.ndarray, queries: Optional[np.ndarray] = None, check=None) -> np.ndarray:
+    def __call__(self, signs: np.ndarray, queries: Optional[np.ndarray] = None, cancel_poll=None) -> np.ndarray:
         c = self._c
         m = np.ascontiguousarray(self._n * c.sort(np.asarray(signs, dtype=np.float64))[:, None])
         q = self._queries if queries is None else np.ascontiguousarray(queries, dtype=np.float64)
         cm = c.total(m)
         out = np.empty((len(q), 3))
         for s in range(0, len(q), FAR_CHUNK):
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             out[s : s + FAR_CHUNK] = _clustered_gradient(q[s : s + FAR_CHUNK], c.centre, cm, self._far2, c.first,
                                                          c.points, m, self._ex2)
         return out
@@ -321,26 +321,26 @@ class BlendedField:
     box : float
         Half-width of the cube sampled for the scale.
 
-    Call it with queries (Q, 3) float64 (and ``check``, passed on to ``fn``); it returns (Q,) float64.
+    Call it with queries (Q, 3) float64 (and ``cancel_poll``, passed on to ``fn``); it returns (Q,) float64.
     """
 
     def __init__(self, fn, points: np.ndarray, normals: np.ndarray, start: float, end: float, box: float,
-                 calibration: int = 4000, seed: int = 0, check=None):
+                 calibration: int = 4000, seed: int = 0, cancel_poll=None):
         if not 0 < start < end:
             raise ValueError(f"need 0 < start < end, got {start!r}, {end!r}")
         self.fn = fn
         self.tree = cKDTree(points)
         self.near = NearCells(points, start)
-        self.far = FarField(points, normals, seed=seed, check=check)
+        self.far = FarField(points, normals, seed=seed, cancel_poll=cancel_poll)
         self.start, self.end = float(start), float(end)
         q = np.random.default_rng(seed).uniform(-box, box, (calibration, 3))
         d, _ = self.tree.query(q, distance_upper_bound=self.start)
         q = q[~np.isfinite(d)]
-        self.scale = winding_scale(self.far(q, check), fn(q, check=check)) if len(q) else 1.0
+        self.scale = winding_scale(self.far(q, cancel_poll), fn(q, cancel_poll=cancel_poll)) if len(q) else 1.0
 
-    def __call__(self, x: np.ndarray, check=None) -> np.ndarray:
+    def __call__(self, x: np.ndarray, cancel_poll=None) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)
-        f = self.fn(x, check=check)
+        f = self.fn(x, cancel_poll=cancel_poll)
         # Most queries lie in cells wholly within ``start`` of a point (b = 0): only the rest go to the
         # KD-tree. Beyond ``end`` it gives inf, which the clamp turns into b = 1.
         rest = np.flatnonzero(~self.near(x))
@@ -355,7 +355,7 @@ class BlendedField:
             bf = b[far]
             idx = rest[far]
             ff = f[idx]
-            f[idx] = (1.0 - bf) * ff + bf * follow_winding(ff, self.far(xr[far], check), self.scale)
+            f[idx] = (1.0 - bf) * ff + bf * follow_winding(ff, self.far(xr[far], cancel_poll), self.scale)
         return f
 
 

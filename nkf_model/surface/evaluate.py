@@ -124,7 +124,7 @@ def evaluate_sparse(
     resolution: int,
     *,
     chunk: int = 65536,
-    check: Callable[[], None] | None = None,
+    cancel_poll: Callable[[], None] | None = None,
     step: Callable[[float], None] | None = None,
     seeds: np.ndarray | None = None,
     close: bool = False,
@@ -174,8 +174,8 @@ def evaluate_sparse(
         out = np.empty(len(ijk))
         pts = node_positions(ijk, r, finest_cell * top / r)
         for s in range(0, len(ijk), chunk):
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             out[s : s + chunk] = f(pts[s : s + chunk])
             if step is not None:
                 done = total_done + min(len(ijk), s + chunk)
@@ -217,13 +217,13 @@ def evaluate_sparse(
         while len(frontier):
             tk, tv = _fk.grow(tk, tv, 27 * len(frontier))
             dk, dv = _fk.grow(dk, dv, 7 * len(frontier))
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             slots, todo_ijk, todo_slots = _fk.gather(frontier, r, tk, tv, keys, values, r_prev, dk)
             tv[todo_slots] = run(todo_ijk, r, expected_rest=4 * len(todo_slots) * remaining_levels)
             evaluated += len(todo_slots)
-            if check is not None:
-                check()
+            if cancel_poll is not None:
+                cancel_poll()
             cells, frontier = _fk.advance(frontier, slots, tv, r_prev, dk)
             fine.append(cells)
         keys, values = tk, tv

@@ -64,7 +64,7 @@ class Mesh:
 
 def triangulate(
     field_: SparseField,
-    check: Callable[[], None] | None = None,
+    cancel_poll: Callable[[], None] | None = None,
     step: Callable[[float], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Marching cubes at level 0 over the band cells of ``field_``.
@@ -94,8 +94,8 @@ def triangulate(
     n_vertices = 0
     n_interior = 0
     for bi, (s, e) in enumerate(zip(starts, ends)):
-        if check is not None:
-            check()
+        if cancel_poll is not None:
+            cancel_poll()
         cells = band[s:e]
         origin = (cells[0] // BLOCK) * BLOCK
         size = np.minimum(BLOCK, r - origin)  # cells along each axis in this block
