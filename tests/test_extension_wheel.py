@@ -1,22 +1,28 @@
 """The nkf_model wheel bundled into the Blender extension holds what reconstruction needs and no
 training or benchmark code."""
 
-import importlib.util
+import subprocess
+import sys
 import zipfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 
-
-def _build_extension_module():
-    spec = importlib.util.spec_from_file_location("build_extension", ROOT / "scripts" / "build_extension.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+# In a fresh process: setuptools refuses to load after the standard library's distutils, which other
+# tests' imports may have loaded in this one.
+BUILD = """
+import sys
+sys.path.insert(0, sys.argv[1])
+from build_extension import build_wheel
+print(build_wheel(__import__("pathlib").Path(sys.argv[2])))
+"""
 
 
 def test_bundled_wheel_leaves_out_training_and_benchmarks(tmp_path):
-    wheel = _build_extension_module().build_wheel(tmp_path)
+    run = subprocess.run([sys.executable, "-c", BUILD, str(ROOT / "scripts"), str(tmp_path)],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    wheel = Path(run.stdout.strip().splitlines()[-1])
     with zipfile.ZipFile(wheel) as z:
         names = z.namelist()
         record = next(n for n in names if n.endswith(".dist-info/RECORD"))
