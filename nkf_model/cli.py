@@ -127,8 +127,6 @@ def options_from_args(args) -> Options:
     """The :class:`~nkf_model.options.Options` of ``nkf reconstruct``'s command line (validated)."""
     if args.memory_budget is not None and not args.memory_budget > 0:
         raise NKFInputError(f"--memory-budget must be a positive number of gigabytes, got {args.memory_budget}")
-    if args.max_points is not None and args.max_points < 10:
-        raise NKFInputError(f"--max-points must be at least 10, got {args.max_points}")
     return Options(
         method=args.method, lam=args.lam, resolution=args.resolution, device=args.device,
         max_points=args.max_points, seed=args.seed, normals_mode=args.normals, orientation=args.orient,

@@ -45,8 +45,8 @@ class Choice:
 class Setting:
     """What a setting is: ``kind`` one of ``"choice"``, ``"float"``, ``"int"``, ``"bool"``, ``"path"``;
     ``optional`` when ``None`` is allowed (and what it means is in ``description``); a hard range
-    ``low``/``high`` (``low_open``: the lower bound itself is excluded), a ``soft_high`` for sliders,
-    ``unit`` for a user interface, and the command line's flag."""
+    ``low``/``high`` (``low_open``, ``high_open``: that bound itself is excluded) and a ``soft_high``
+    for sliders."""
 
     name: str
     kind: str
@@ -58,8 +58,8 @@ class Setting:
     low: float | None = None
     high: float | None = None
     low_open: bool = False
+    high_open: bool = False
     soft_high: float | None = None
-    flag: str = ""
 
     @property
     def values(self) -> tuple[str, ...]:
@@ -152,59 +152,59 @@ DEFAULT_METHOD = "nkf" if SHIPPED_WEIGHTS.is_file() else "splines"
 
 SETTINGS: tuple[Setting, ...] = (
     Setting("method", "choice", DEFAULT_METHOD, "Method", "Which kernel fits the surface",
-            choices=METHOD_CHOICES, flag="--method"),
+            choices=METHOD_CHOICES),
     Setting("lam", "float", 1e-10, "Lambda",
             "Regularization (the paper's lambda) per constraint: 0 interpolates the points exactly, larger "
             "values give a smoother surface; 1e-12 to 1e-8 fit the points",
-            low=0.0, soft_high=1e-3, flag="--lam"),
+            low=0.0, soft_high=1e-3),
     Setting("resolution", "int", 128, "Resolution",
             "Grid cells along the longest side; higher gives finer detail and takes longer",
-            low=MIN_RESOLUTION, high=MAX_RESOLUTION, soft_high=512, flag="--resolution"),
-    Setting("device", "choice", "auto", "Device", "Where the kernel runs", choices=DEVICE_CHOICES, flag="--device"),
+            low=MIN_RESOLUTION, high=MAX_RESOLUTION, soft_high=512),
+    Setting("device", "choice", "auto", "Device", "Where the kernel runs", choices=DEVICE_CHOICES),
     Setting("max_points", "int", None, "Max Points",
             "Use a random subset (seeded) of at most this many points; None uses all",
-            optional=True, low=10, soft_high=1_000_000, flag="--max-points"),
+            optional=True, low=10, soft_high=1_000_000),
     Setting("seed", "int", 0, "Seed", "Seed for the Max Points subset, Nystrom centres and thinned patches",
-            low=0, flag="--seed"),
+            low=0),
     Setting("normals_mode", "choice", "auto", "Normals", "Where the normals come from",
-            choices=NORMALS_CHOICES, flag="--normals"),
+            choices=NORMALS_CHOICES),
     Setting("orientation", "choice", None, "Orientation",
             "Which way estimated normals point; None: towards the viewpoints when there are any, else outward",
-            choices=ORIENTATION_CHOICES, optional=True, flag="--orient"),
+            choices=ORIENTATION_CHOICES, optional=True),
     Setting("trim", "float", None, "Trim Distance",
             "Cut the surface farther than this many point spacings from every point (open scans); "
             "None keeps the closed surface",
-            optional=True, low=0.0, low_open=True, soft_high=20.0, flag="--trim"),
+            optional=True, low=0.0, low_open=True, soft_high=20.0),
     Setting("min_piece", "float", 0.0, "Min Piece",
             "Drop connected pieces with less than this fraction of the total area (0 keeps all)",
-            low=0.0, high=1.0, soft_high=0.1, flag="--min-piece"),
+            low=0.0, high=1.0, high_open=True, soft_high=0.1),
     Setting("close", "bool", False, "Watertight",
-            "Cap the surface where it runs into the bounding box (plus 5 %), so that the mesh is closed",
-            flag="--close"),
+            "Cap the surface where it runs into the bounding box (plus 5 %), so that the mesh is closed"),
     Setting("reduce_to", "int", 300_000, "Reduce To",
             "Reduce larger inputs to at most this many points by voxel-grid averaging; None never reduces",
-            optional=True, low=1000, flag="--reduce-to"),
+            optional=True, low=1000),
     Setting("solver", "choice", "auto", "Solver", "How the kernel weights are solved",
-            choices=SOLVER_CHOICES, flag="--solver"),
+            choices=SOLVER_CHOICES),
     Setting("max_centres", "int", 6000, "Max Centres",
             "Largest exact solve, in constraints (2 per point); Falkon uses this many Nystrom centres",
-            low=100, flag=""),
+            low=100),
     Setting("eps", "float", None, "Offset",
             "Offset of the constraints along the normals, as a fraction of the bounding box's longest side; "
             "None: 0.01 up to 3,000 points, then shrinking with the point spacing",
-            optional=True, low=0.0, high=0.1, low_open=True, flag=""),
+            optional=True, low=0.0, high=0.1, low_open=True),
     Setting("memory_budget", "float", None, "Memory Budget",
             "Bytes a run may use; None: 60 % of this machine's memory, at most 16 GiB",
-            optional=True, low=0.0, low_open=True, flag="--memory-budget"),
+            optional=True, low=0.0, low_open=True),
     Setting("weights", "path", None, "Weights",
             "Weights file (safetensors) of the learned kernel; None: the weights shipped in the package",
-            optional=True, flag="--weights"),
+            optional=True),
 )
 SETTING = {s.name: s for s in SETTINGS}
 
 
 def _check(s: Setting, value):
-    """``value`` if it is valid for ``s`` (ints as int, floats as float), else InvalidParameterError."""
+    """``value`` if it is valid for ``s`` (ints as int, numeric strings as float, other numbers as
+    given), else InvalidParameterError."""
     if value is None:
         if s.optional:
             return None
@@ -224,20 +224,18 @@ def _check(s: Setting, value):
             raise InvalidParameterError(_message(s, value, "type"))
         v = int(value)
     else:
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            if s.name != "lam":
-                raise InvalidParameterError(_message(s, value, "type"))
-            try:  # lambda also takes numeric strings ("1e-8"), as it always has
-                v = float(value)
-            except (TypeError, ValueError):
-                raise InvalidParameterError(_message(s, value, "type")) from None
-            value = v
-        v = float(value)
+        if isinstance(value, bool) or not isinstance(value, (numbers.Real, str)):
+            raise InvalidParameterError(_message(s, value, "type"))
+        try:  # numeric strings ("1e-8") too, as lambda always took them
+            v = float(value)
+        except ValueError:
+            raise InvalidParameterError(_message(s, value, "type")) from None
+        value = value if isinstance(value, numbers.Real) else v
         if not math.isfinite(v):
             raise InvalidParameterError(_message(s, value, "range"))
     if s.low is not None and (v < s.low or (s.low_open and v <= s.low)):
         raise InvalidParameterError(_message(s, value, "range"))
-    if s.high is not None and (v > s.high or (s.name == "min_piece" and v >= s.high)):
+    if s.high is not None and (v > s.high or (s.high_open and v >= s.high)):
         raise InvalidParameterError(_message(s, value, "range"))
     return v if s.kind == "int" else value
 

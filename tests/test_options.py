@@ -110,3 +110,16 @@ def test_importing_the_package_and_its_settings_loads_nothing_heavy():
     assert _imported_after("import nkf_model; nkf_model.Options(resolution=64); nkf_model.METHODS") == []
     # the first use of the reconstruction loads it
     assert "nkf_model.pipeline.reconstruct" in _imported_after("import nkf_model; nkf_model.reconstruct")
+
+
+def test_estimate_normals_takes_the_cancel_poll_under_its_old_name_too():
+    from nkf_model.errors import Cancelled
+
+    pts, _ = sphere_points(300, seed=1)
+
+    def stop():
+        raise Cancelled("stop")
+
+    for kw in ("cancel_poll", "check"):
+        with pytest.raises(Cancelled):
+            nkf_model.estimate_normals(pts, **{kw: stop})

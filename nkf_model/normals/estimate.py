@@ -790,6 +790,7 @@ def estimate_normals(
     orientation: Optional[str] = None,
     viewpoints=None,
     cancel_poll: CancelPoll = None,
+    check: CancelPoll = None,
 ):
     """Oriented unit normals for a point cloud without normals.
 
@@ -804,6 +805,9 @@ def estimate_normals(
         given, else ``"outward"``.
     viewpoints : (3,) or (K, 3) float, optional
         Scanner or camera positions in the frame of ``points``.
+    cancel_poll : callable, optional
+        Called between chunks of work; raises (e.g. :class:`~nkf_model.errors.Cancelled`) to stop.
+        ``check`` is its former name, still accepted.
 
     Returns
     -------
@@ -813,6 +817,8 @@ def estimate_normals(
     """
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 3 <= k <= 200:
         raise InvalidParameterError(f"normal neighbours k must be an integer from 3 to 200, got {k!r}")
+    if cancel_poll is None:
+        cancel_poll = check
     vp = check_viewpoints(viewpoints)
     orientation = check_orientation(orientation, vp)
     return _checked(*_estimate(points, k, orientation, vp, cancel_poll), learned=True, cancel_poll=cancel_poll)

@@ -3,7 +3,7 @@
 :func:`estimate` predicts, from the number of input points and the settings alone (no look at the
 data, no heavy work: microseconds), what :func:`nkf_model.reconstruct` will do (reduction, normal
 estimation, solver) and about how long it takes and how much memory it needs on the CPU.
-:func:`check` refuses a run whose memory estimate exceeds the budget with a
+:func:`enforce` refuses a run whose memory estimate exceeds the budget with a
 :class:`~nkf_model.errors.MemoryBudgetError` that names the setting to lower.
 
 The constants below were fitted to runs on this project's reference machine (2-core AMD EPYC,
