@@ -36,11 +36,11 @@ from .errors import (
     TooFewPointsError,
     WeightsError,
 )
-from .options import SETTINGS, Options
+from .options import SETTING, SETTINGS, Options
 
 __version__ = "0.1.0"
 
-METHODS = SETTINGS[0].values  # ("splines", "nkf")
+METHODS = SETTING["method"].values  # ("splines", "nkf")
 
 # Public names whose modules load on first use: name -> module that defines it.
 _LAZY = {

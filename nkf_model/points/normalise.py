@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# The evaluation grid spans [-GRID_HALF, GRID_HALF]^3 of the unit box: the box plus 5 % on each side.
+# The evaluation grid spans [-GRID_HALF, GRID_HALF]^3 of the unit box: the box plus 5 % on each side,
+# so surfaces that bulge past the points' bounding box (and the offset constraints at +-eps) stay inside.
 GRID_HALF = 0.55
 
 

@@ -17,12 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..options import MAX_RESOLUTION, MIN_RESOLUTION  # noqa: F401  (the range lives with the settings)
 from ..points.normalise import GRID_HALF
 from . import _flood_kernels as _fk
 
-# The grid spans the unit box plus a margin, so surfaces that bulge past the points' bounding box
-# (and the offset constraints at +-eps) stay inside it.
+# The grid spans [-GRID_HALF, GRID_HALF]^3 (points.normalise); its resolution range is the setting's
+# (options.MIN_RESOLUTION, options.MAX_RESOLUTION).
 COARSEST = 16  # the coarsest level has 16 to 32 cells per side
 
 _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
