@@ -14,69 +14,22 @@ has one more output channel, ``rho``, and each constraint gets the weight
 
 Shapes: the network runs in float32 on one shape at a time; :func:`sample_grid_numpy` gives the
 same trilinear interpolation in NumPy float64 for the evaluation of large grids.
+:class:`FeatureConfig` lives in :mod:`~nkf_model.kernel.feature_config` and the inference-only
+NumPy twin of this network (no PyTorch) in :mod:`~nkf_model.kernel.feature_net_numpy`.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
-
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from ..points.normalise import GRID_HALF
+from .feature_config import FeatureConfig
+from .feature_net_numpy import sample_grid_numpy
 
-
-@dataclass(frozen=True)
-class FeatureConfig:
-    """Architecture of the feature network; stored in the weights file's metadata.
-
-    Attributes
-    ----------
-    grid : int
-        Cells per side M of the feature grid.
-    pointnet_width : int
-        Channels of the per-cell PointNet.
-    unet_width : int
-        Channels of the U-Net's finest level (doubled at each coarser level).
-    unet_levels : int
-        Resolution levels of the U-Net (2 or 3; ``grid`` must be divisible by 2^(levels-1)).
-    feature_dim : int
-        d, the number of learned feature channels.
-    point_weights : bool
-        Predict per-constraint weights (one more output channel).
-    gate_init : float
-        Initial value of the per-channel gate on ``tanh(raw)``.
-    const_channel : bool
-        Make the first feature a learned constant ``c`` (the same for every point). With it,
-        ``[x : c : phi' : 1]`` has the inner products of ``[x : phi' : sqrt(1 + c^2)]``: a learned
-        global scale of the kernel (``x`` scaled by ``1 / sqrt(1 + c^2)``), which the per-point
-        features then modulate.
-    const_init : float
-        Initial ``log(c^2)``.
-    """
-
-    grid: int = 16
-    pointnet_width: int = 32
-    unet_width: int = 16
-    unet_levels: int = 3
-    feature_dim: int = 8
-    point_weights: bool = False
-    gate_init: float = 0.1
-    const_channel: bool = False
-    const_init: float = -3.0
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> FeatureConfig:
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown feature-network settings: {', '.join(sorted(unknown))}")
-        return cls(**d)
+__all__ = ["FeatureConfig", "FeatureNet", "UNet3D", "cell_coordinates", "sample_grid_numpy",
+           "sample_grid_torch"]
 
 
 def cell_coordinates(x: torch.Tensor, grid: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -229,35 +182,3 @@ def sample_grid_torch(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     g = (x / GRID_HALF)[:, [2, 1, 0]].reshape(1, 1, 1, -1, 3).to(grid.dtype)
     out = F.grid_sample(grid[None], g, mode="bilinear", padding_mode="border", align_corners=False)
     return out.reshape(grid.shape[0], -1).T
-
-
-def sample_grid_numpy(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """NumPy float64 twin of :func:`sample_grid_torch`.
-
-    Parameters
-    ----------
-    grid : (M, M, M, C) float array
-        Channels last (C-contiguous for fast gathers).
-    x : (N, 3) float
-        Unit-box positions.
-
-    Returns
-    -------
-    (N, C) float64
-    """
-    m = grid.shape[0]
-    s = (np.asarray(x, dtype=np.float64) + GRID_HALF) * (m / (2.0 * GRID_HALF)) - 0.5
-    s = np.clip(s, 0.0, m - 1)
-    i0 = np.minimum(np.floor(s).astype(np.int64), m - 2) if m > 1 else np.zeros(s.shape, np.int64)
-    f = s - i0
-    flat = grid.reshape(m * m * m, -1)
-    out = np.zeros((len(s), flat.shape[1]))
-    for a in (0, 1):
-        wa = f[:, 0] if a else 1.0 - f[:, 0]
-        for b in (0, 1):
-            wb = wa * (f[:, 1] if b else 1.0 - f[:, 1])
-            for c in (0, 1):
-                w = wb * (f[:, 2] if c else 1.0 - f[:, 2])
-                idx = ((i0[:, 0] + a) * m + (i0[:, 1] + b)) * m + (i0[:, 2] + c)
-                out += w[:, None] * flat[idx]
-    return out

@@ -1,9 +1,10 @@
 """The learned kernel at inference time: features and weights for the core's solver and evaluator.
 
 Given the augmented constraints ``x +- eps n`` (unit box) of one input, :meth:`LearnedKernel.prepare`
-runs the feature network once (PyTorch, CPU, no gradients), keeps the feature grid as a NumPy array
-and returns what :func:`nkf_model.fit.solve.solve_dense` / :func:`~nkf_model.fit.solve.solve_falkon` and
-:class:`~nkf_model.fit.solve.KernelFunction` need:
+runs the feature network once (PyTorch on the CPU without gradients, or its NumPy twin
+:class:`~nkf_model.kernel.feature_net_numpy.NumpyFeatureNet` when PyTorch is absent), keeps the
+feature grid as a NumPy array and returns what :func:`nkf_model.fit.solve.solve_dense` /
+:func:`~nkf_model.fit.solve.solve_falkon` and :class:`~nkf_model.fit.solve.KernelFunction` need:
 
 * the homogeneous constraints ``a_i = w_i [x_i : phi(x_i) : 1]`` and targets ``w_i y_i``. Scaling
   ``a_i`` by the per-point weight ``w_i`` scales ``K(., a_i)`` by ``w_i`` (the kernel is homogeneous
@@ -22,7 +23,7 @@ import numba as nb
 import numpy as np
 
 from ..points.normalise import GRID_HALF
-from .feature_net import FeatureNet, sample_grid_numpy
+from .feature_net_numpy import sample_grid_numpy
 from .neural_spline import homogeneous
 
 
@@ -93,11 +94,15 @@ class Prepared:
 class LearnedKernel:
     """A trained feature network ready for inference (see the module docstring)."""
 
-    def __init__(self, net: FeatureNet, meta: dict):
+    def __init__(self, net, meta: dict):
+        # net: a FeatureNet (PyTorch) or a NumpyFeatureNet (backend "numpy"); both have the same
+        # config, learned_dim, gate and constant_feature().
         self.net = net.eval()
         self.meta = meta
         self.config = net.config
-        self.gate = net.gate.detach().double().numpy().copy()
+        self.backend = getattr(net, "backend", "torch")
+        gate = net.gate
+        self.gate = np.array(gate.detach().double().numpy() if hasattr(gate, "detach") else gate, dtype=np.float64)
 
     @property
     def feature_dim(self) -> int:
@@ -105,6 +110,8 @@ class LearnedKernel:
 
     def feature_grid(self, xa: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Raw feature grid (M, M, M, C) float64 for constraints ``xa`` (2N, 3) and labels (2N,)."""
+        if self.backend == "numpy":
+            return np.ascontiguousarray(np.moveaxis(self.net.grid_features(xa, y), 0, -1))
         import torch
 
         # One intra-op thread: the network is small (about 0.1 s), and on a busy machine a second

@@ -62,12 +62,13 @@ def save_weights(path, net, *, lam: float, training: dict | None = None) -> Path
     return path
 
 
-def read_weights(path):
-    """Tensors and metadata of a weights file, checked; returns ``(tensors, meta, config)``."""
-    from .feature_net import FeatureConfig
+def read_weights(path, framework: str = "pt"):
+    """Tensors (``framework`` "pt" or "numpy") and metadata of a weights file, checked; returns
+    ``(tensors, meta, config)``."""
+    from .feature_config import FeatureConfig
 
     path = Path(path)
-    tensors, meta = read_safetensors(path, framework="pt")
+    tensors, meta = read_safetensors(path, framework=framework)
     if meta.get("format") != FORMAT:
         raise WeightsError(f"weights file {path} is a safetensors file but not NKF weights (no '{FORMAT}' tag)")
     if meta.get("format_version") != FORMAT_VERSION:
@@ -85,17 +86,35 @@ def read_weights(path):
     return tensors, meta, config
 
 
-def load_weights(path=None):
+def torch_installed() -> bool:
+    """True when PyTorch can be imported here (imports it)."""
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def resolve_backend(backend: str = "auto") -> str:
+    """The feature network's backend: ``"torch"`` or ``"numpy"``. ``"auto"`` is ``"torch"`` when
+    PyTorch is installed, else ``"numpy"`` (:mod:`~nkf_model.kernel.feature_net_numpy`, the same
+    features within 1e-6, so NKF runs on the CPU without PyTorch)."""
+    if backend not in ("auto", "torch", "numpy"):
+        raise ValueError(f"backend must be 'auto', 'torch' or 'numpy', got {backend!r}")
+    if backend == "auto":
+        return "torch" if torch_installed() else "numpy"
+    return backend
+
+
+def load_weights(path=None, backend: str = "auto"):
     """Load a :class:`~nkf_model.kernel.learned_kernel.LearnedKernel` from ``path`` (default: the shipped file).
 
-    Raises :class:`~nkf_model.errors.WeightsError` if the file is missing, not safetensors,
-    truncated, or does not match the network its metadata describes.
+    ``backend`` (see :func:`resolve_backend`): ``"torch"`` runs the PyTorch network, ``"numpy"`` its
+    NumPy twin, ``"auto"`` PyTorch when installed. Raises :class:`~nkf_model.errors.WeightsError` if
+    the file is missing, not safetensors, truncated, or does not match the network its metadata
+    describes.
     """
-    import torch
-
-    from .feature_net import FeatureNet
-    from .learned_kernel import LearnedKernel
-
+    backend = resolve_backend(backend)
     path = Path(path) if path is not None else DEFAULT_WEIGHTS
     if path is DEFAULT_WEIGHTS and not path.is_file():
         raise DefaultWeightsMissingError(
@@ -108,14 +127,24 @@ def load_weights(path=None):
         key = (str(path.resolve()), st.st_mtime_ns, st.st_size)
     except OSError:
         pass
+    if key is not None:
+        key = (*key, backend)
     if key is not None and key in _CACHE:
         return _CACHE[key]
-    tensors, meta, config = read_weights(path)
-    try:
-        net = FeatureNet(config)
-    except ValueError as exc:
-        raise WeightsError(f"weights file {path} describes an invalid network: {exc}") from None
-    expected = net.state_dict()
+    if backend == "numpy":
+        model = _load_numpy(path)
+    else:
+        model = _load_torch(path)
+    if key is not None:
+        _CACHE[key] = model
+    return model
+
+
+def _check_tensors(path, tensors: dict, expected: dict) -> None:
+    """Names, shapes, dtypes (float32) and finiteness of ``tensors`` against ``expected``
+    (name -> shape); raises :class:`WeightsError` naming the file and the first problem."""
+    import numpy as np
+
     missing = sorted(set(expected) - set(tensors))
     extra = sorted(set(tensors) - set(expected))
     if missing or extra:
@@ -125,24 +154,51 @@ def load_weights(path=None):
             + (f", e.g. missing {missing[0]}" if missing else f", e.g. unexpected {extra[0]}")
             + ")"
         )
-    for k, t in expected.items():
-        if tuple(tensors[k].shape) != tuple(t.shape):
+    for k, shape in expected.items():
+        if tuple(tensors[k].shape) != tuple(shape):
             raise WeightsError(
                 f"weights file {path} does not match its stored configuration: tensor {k} has shape "
-                f"{tuple(tensors[k].shape)}, the network needs {tuple(t.shape)}"
+                f"{tuple(tensors[k].shape)}, the network needs {tuple(shape)}"
             )
-        if tensors[k].dtype != t.dtype:
-            raise WeightsError(f"weights file {path}: tensor {k} is {tensors[k].dtype}, expected {t.dtype}")
-        if t.is_floating_point() and not bool(torch.isfinite(tensors[k]).all()):
+        dtype = str(tensors[k].dtype).removeprefix("torch.")
+        if dtype != "float32":
+            raise WeightsError(f"weights file {path}: tensor {k} is {dtype}, expected float32")
+        if not bool(np.isfinite(np.asarray(tensors[k])).all()):
             raise WeightsError(f"weights file {path}: tensor {k} holds NaN or infinite values (corrupt)")
-    net.load_state_dict(tensors, strict=True)
+
+
+def _load_numpy(path):
+    from .feature_net_numpy import NumpyFeatureNet, expected_shapes
+    from .learned_kernel import LearnedKernel
+
+    tensors, meta, config = read_weights(path, framework="numpy")
+    try:
+        expected = expected_shapes(config)
+    except ValueError as exc:
+        raise WeightsError(f"weights file {path} describes an invalid network: {exc}") from None
+    _check_tensors(path, tensors, expected)
+    return LearnedKernel(NumpyFeatureNet(config, tensors), _meta(meta, path))
+
+
+def _meta(meta: dict, path) -> dict:
     meta = dict(meta)
     meta["lam_value"] = float(meta["lam"])
     meta["path"] = str(path)
-    model = LearnedKernel(net, meta)
-    if key is not None:
-        _CACHE[key] = model
-    return model
+    return meta
+
+
+def _load_torch(path):
+    from .feature_net import FeatureNet
+    from .learned_kernel import LearnedKernel
+
+    tensors, meta, config = read_weights(path)
+    try:
+        net = FeatureNet(config)
+    except ValueError as exc:
+        raise WeightsError(f"weights file {path} describes an invalid network: {exc}") from None
+    _check_tensors(path, tensors, {k: tuple(t.shape) for k, t in net.state_dict().items()})
+    net.load_state_dict(tensors, strict=True)
+    return LearnedKernel(net, _meta(meta, path))
 
 
 def method_available(method: str) -> tuple[bool, str]:
