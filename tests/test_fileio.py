@@ -28,7 +28,9 @@ def test_ascii_ply_with_double_coordinates_and_colours(tmp_path):
         "1000000.125 2 3 255 0 10\n4 5 6 1 2 3\n"
     )
     c = read_point_cloud(path)
-    assert c.points[0, 0] == 1000000.125
+    # Large coordinates are recentred; the offset brings back the file's values exactly.
+    assert c.offset[0] != 0 and c.absolute_points()[0, 0] == 1000000.125
+    np.testing.assert_array_equal(c.absolute_points()[1], [4, 5, 6])
     assert c.normals is None
     np.testing.assert_array_equal(c.colors, [[255, 0, 10], [1, 2, 3]])
 

@@ -1,67 +1,38 @@
-"""Reading point clouds and meshes from PLY, writing meshes as PLY or OBJ.
+"""Reading point clouds (by extension: PLY, LAS/LAZ, E57, XYZ/PTS/TXT/CSV, PCD) and meshes (PLY);
+writing meshes as PLY or OBJ.
 
-Reading uses :mod:`plyfile` (ASCII and binary PLY). Writing goes to a temporary file in the
+Each point-cloud format has its reader module beside this one (``ply``, ``las``, ``e57``,
+``text``, ``pcd``; ``cloud`` holds what they return). Writing goes to a temporary file in the
 destination folder that is renamed over the destination only when complete, so a failed or
-interrupted write never leaves a partial file behind.
+interrupted write never leaves a partial file behind; the file gets the permissions ``open()``
+would give it (the umask's, or the replaced file's own), and the free space is checked first.
+A mesh made from recentred points is written back in the file's coordinates (``offset``), in
+float64.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
+import stat
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import OutputPathError, PointCloudFileError
+from .cloud import PointCloud
+from .ply import open_ply as _open_ply
+from .ply import vertex_element as _vertex_element
 
 MESH_FORMATS = (".ply", ".obj")
 
 
-@dataclass
-class PointCloud:
-    """Points read from a file.
-
-    Attributes
-    ----------
-    points : (N, 3) float64
-    normals : (N, 3) float64 or None
-        ``None`` when the file has no ``nx ny nz`` properties.
-    colors : (N, 3) uint8 or None
-        ``red green blue`` when present.
-    """
-
-    points: np.ndarray
-    normals: np.ndarray | None = None
-    colors: np.ndarray | None = None
-
-
-def _open_ply(path):
-    from plyfile import PlyData
-
-    p = Path(path)
-    if not p.exists():
-        raise PointCloudFileError(f"{p}: no such file")
-    if p.is_dir():
-        raise PointCloudFileError(f"{p}: is a folder, not a PLY file")
-    try:
-        with open(p, "rb") as fh:
-            return PlyData.read(fh)
-    except PermissionError:
-        raise PointCloudFileError(f"{p}: permission denied") from None
-    except OSError as exc:
-        raise PointCloudFileError(f"{p}: cannot be read ({exc.strerror or exc})") from None
-    except Exception as exc:  # plyfile raises PlyParseError, ValueError, struct errors, ...
-        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise PointCloudFileError(f"{p}: not a valid PLY file ({detail})") from None
-
-
-def _vertex_element(ply, path):
-    try:
-        return ply["vertex"]
-    except KeyError:
-        raise PointCloudFileError(f"{path}: the PLY file has no 'vertex' element") from None
+POINT_FORMATS = {
+    ".ply": "ply", ".las": "las", ".laz": "las", ".e57": "e57", ".pcd": "pcd",
+    ".xyz": "text", ".pts": "text", ".txt": "text", ".csv": "text",
+}
+"""Point-cloud file extensions read by :func:`read_point_cloud`, and the reader of each."""
 
 
 def _columns(el, names, path, what):
@@ -75,28 +46,48 @@ def _columns(el, names, path, what):
         raise PointCloudFileError(f"{path}: cannot read {what} ({exc})") from None
 
 
-def read_point_cloud(path) -> PointCloud:
-    """Read a PLY point cloud with ``x y z`` and, if present, ``nx ny nz`` and ``red green blue``.
+def read_point_cloud(path, *, classes=None, columns=None, progress=None) -> PointCloud:
+    """Read a point cloud, the format chosen by the file's extension (:data:`POINT_FORMATS`).
+
+    PLY (``io/ply.py``), LAS/LAZ (``io/las.py``, laspy with lazrs), E57 (``io/e57.py``, pye57),
+    XYZ/PTS/TXT/CSV (``io/text.py``), PCD (``io/pcd.py``). Returns a :class:`~.cloud.PointCloud`
+    whose ``points`` (N, 3) float64 are relative to its ``offset`` (zeros unless the coordinates
+    are large, see :mod:`.cloud`). ``classes``: keep only points of these classification codes
+    (LAS, or files with a classification column); ``columns``: the column roles of a text file
+    (``"x y z i r g b"``); ``progress(fraction)``.
 
     Raises
     ------
     PointCloudFileError
-        Missing, unreadable or corrupt file, or no ``x y z``.
+        Unknown extension; missing, unreadable, truncated or corrupt file; no usable points; a
+        library the format needs is not installed (the message says what to install).
     """
-    ply = _open_ply(path)
-    el = _vertex_element(ply, path)
-    pts, missing = _columns(el, ("x", "y", "z"), path, "positions")
-    if pts is None:
-        raise PointCloudFileError(f"{path}: the vertices have no {'/'.join(missing)} properties")
-    normals, _ = _columns(el, ("nx", "ny", "nz"), path, "normals")
-    colors = None
-    props = {p.name for p in el.properties}
-    if {"red", "green", "blue"} <= props:
-        colors = np.stack([np.asarray(el[c]) for c in ("red", "green", "blue")], axis=1)
-        if colors.dtype.kind == "f":
-            colors = np.clip(colors * 255.0 + 0.5, 0, 255)
-        colors = colors.astype(np.uint8)
-    return PointCloud(points=pts, normals=normals, colors=colors)
+    p = Path(path)
+    kind = POINT_FORMATS.get(p.suffix.lower())
+    if kind is None:
+        known = " ".join(sorted(POINT_FORMATS))
+        raise PointCloudFileError(f"{p}: unsupported point-cloud format '{p.suffix or '(none)'}' (read: {known})")
+    if columns is not None and kind != "text":
+        raise PointCloudFileError(f"{p}: column names apply to text files (.xyz .pts .txt .csv) only")
+    if kind == "ply":
+        from .ply import read_ply
+
+        return read_ply(p, classes=classes, progress=progress)
+    if kind == "las":
+        from .las import read_las
+
+        return read_las(p, classes=classes, progress=progress)
+    if kind == "e57":
+        from .e57 import read_e57
+
+        return read_e57(p, classes=classes, progress=progress)
+    if kind == "pcd":
+        from .pcd import read_pcd
+
+        return read_pcd(p, classes=classes, progress=progress)
+    from .text import read_text
+
+    return read_text(p, columns=columns, classes=classes, progress=progress)
 
 
 def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
@@ -146,13 +137,52 @@ def check_output_path(path, formats=MESH_FORMATS) -> Path:
     return p
 
 
-def _atomic_write(path: Path, write, formats=MESH_FORMATS) -> None:
+def _umask() -> int:
+    """This process's umask, read without changing it where Linux allows (else set and restored)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _new_file_mode(path: Path) -> int:
+    """The permission bits ``open(path, "w")`` would leave: the existing file's, else 0o666 less the umask."""
+    try:
+        return stat.S_IMODE(path.stat().st_mode)
+    except OSError:
+        return 0o666 & ~_umask()
+
+
+def _check_space(path: Path, size: int | None) -> None:
+    if size is None:
+        return
+    try:
+        free = shutil.disk_usage(path.parent if str(path.parent) else ".").free
+    except OSError:
+        return
+    if size > free:
+        raise OutputPathError(
+            f"{path}: not enough space in {path.parent}: the file needs {size / 2**20:,.1f} MiB, "
+            f"{free / 2**20:,.1f} MiB are free"
+        )
+
+
+def _atomic_write(path: Path, write, formats=MESH_FORMATS, size: int | None = None) -> None:
     path = check_output_path(path, formats)
+    _check_space(path, size)
+    mode = _new_file_mode(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent or ".")
     except OSError as exc:
         raise OutputPathError(f"{path}: cannot be written ({exc.strerror or exc})") from None
     try:
+        os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()
@@ -174,7 +204,8 @@ def _remove(tmp):
 
 
 def write_mesh(
-    path, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None, colors: np.ndarray | None = None
+    path, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None,
+    colors: np.ndarray | None = None, *, offset=None,
 ) -> Path:
     """Write a triangle mesh as binary PLY or as OBJ, chosen by the extension of ``path``.
 
@@ -187,22 +218,42 @@ def write_mesh(
     colors : (V, 3) uint8 or None
         Per-vertex colours, written as ``red green blue`` uchar (PLY) or as ``v x y z r g b``
         with components in 0-1 (OBJ, as MeshLab and Blender read it).
+    offset : (3,) float or None
+        Added to ``vertices`` in float64 (the :attr:`~.cloud.PointCloud.offset` of recentred
+        points). When it is non-zero the positions are written in float64 (PLY ``double``, OBJ
+        with 15 significant digits) so that map coordinates keep their millimetres; otherwise
+        float32 as before.
+
+    Raises
+    ------
+    OutputPathError
+        Bad extension or folder, not enough free space for the file, or a failed write (the
+        destination is then untouched).
     """
     p = Path(path)
-    v = np.asarray(vertices, dtype=np.float32)
+    wide = offset is not None and bool(np.any(np.asarray(offset, dtype=np.float64)))
+    if wide:
+        v = np.asarray(vertices, dtype=np.float64) + np.asarray(offset, dtype=np.float64)
+    else:
+        v = np.asarray(vertices, dtype=np.float32)
     f = np.asarray(faces, dtype=np.int32)
     n = None if normals is None else np.asarray(normals, dtype=np.float32)
     c = None if colors is None else np.asarray(colors, dtype=np.uint8)
+    per_vertex = v.itemsize * 3 + (12 if n is not None else 0) + (3 if c is not None else 0)
     if p.suffix.lower() == ".obj":
-        _atomic_write(p, lambda fh: _write_obj(fh, v, f, n, c))
+        digits = 60 if wide else 40
+        size = len(v) * (digits + (30 if n is not None else 0)) + len(f) * 24
+        _atomic_write(p, lambda fh: _write_obj(fh, v, f, n, c), size=size)
     else:
-        _atomic_write(p, lambda fh: _write_ply_mesh(fh, v, f, n, c))
+        size = 512 + len(v) * per_vertex + len(f) * 13
+        _atomic_write(p, lambda fh: _write_ply_mesh(fh, v, f, n, c), size=size)
     return p
 
 
 def _write_ply_mesh(fh, v, f, n, c=None):
-    props = ["property float x", "property float y", "property float z"]
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    kind, code = ("double", "<f8") if v.dtype == np.float64 else ("float", "<f4")
+    props = [f"property {kind} x", f"property {kind} y", f"property {kind} z"]
+    fields = [("x", code), ("y", code), ("z", code)]
     if n is not None:
         props += ["property float nx", "property float ny", "property float nz"]
         fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
@@ -230,11 +281,12 @@ def _write_ply_mesh(fh, v, f, n, c=None):
 
 def _write_obj(fh, v, f, n, c=None):
     fh.write(b"# made by nkf_model\n")
+    fmt = "%.15g" if v.dtype == np.float64 else "%.7g"
     if c is None:
-        _write_rows(fh, "v", v, "%.7g")
+        _write_rows(fh, "v", v, fmt)
     else:
         vc = np.concatenate([v.astype(np.float64), c.astype(np.float64) / 255.0], axis=1)
-        _write_rows(fh, "v", vc, "%.7g")
+        _write_rows(fh, "v", vc, fmt)
     if n is not None:
         _write_rows(fh, "vn", n, "%.5f")
         _write_rows(fh, "f", f + 1, "%d", pattern="{0}//{0}")
