@@ -1,7 +1,8 @@
 """The ``nkf`` command line (also ``python -m nkf_model``).
 
-``nkf reconstruct INPUT.ply OUTPUT.{ply,obj}`` reads oriented points, reconstructs a surface and
-writes it in the input's coordinate frame. Problems with the input or the settings end with one
+``nkf reconstruct INPUT OUTPUT.{ply,obj}`` reads points (PLY, LAS/LAZ, E57, XYZ/PTS/TXT/CSV, PCD),
+reconstructs a surface and writes it in the input's coordinate frame (map coordinates included).
+Problems with the input or the settings end with one
 line on stderr and exit status 1 (2 for unknown options); nothing is written unless the whole run
 succeeds.
 """
@@ -32,11 +33,13 @@ def _parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
     r = sub.add_parser(
         "reconstruct",
-        help="reconstruct a mesh from a PLY point cloud",
-        description="Reconstruct a mesh from a PLY point cloud with x y z (nx ny nz and red green blue "
-                    "when present; normals are estimated when absent).",
+        help="reconstruct a mesh from a point cloud (PLY, LAS/LAZ, E57, XYZ/PTS/TXT/CSV, PCD)",
+        description="Reconstruct a mesh from a point cloud with x y z (normals and colours when present; "
+                    "normals are estimated when absent). Formats by extension: .ply .las .laz .e57 .xyz "
+                    ".pts .txt .csv .pcd.",
     )
-    r.add_argument("input", help="PLY point cloud (ASCII or binary) with x y z, optionally nx ny nz and red green blue")
+    r.add_argument("input", help="point cloud: .ply (nx/normal_x, red green blue), .las/.laz, .e57 (every scan, "
+                                 "with its scanner position), .xyz/.pts/.txt/.csv (columns detected), .pcd")
     r.add_argument("output", help="mesh to write: .ply (binary) or .obj")
     method, lam, res = SETTING["method"], SETTING["lam"], SETTING["resolution"]
     r.add_argument("--method", choices=method.values, default=method.default,
@@ -59,7 +62,14 @@ def _parser() -> argparse.ArgumentParser:
                    help="orientation of estimated normals: 'outward' (closed objects, default), 'up' "
                         "(terrain, aerial scans), 'viewpoint' (towards --viewpoint; default when one is given)")
     s.add_argument("--viewpoint", type=float, nargs=3, action="append", metavar=("X", "Y", "Z"),
-                   help="scanner or camera position in the input's frame (repeat for several)")
+                   help="scanner or camera position in the input's frame (repeat for several); default: "
+                        "the scanner positions of an E57 file")
+    s.add_argument("--classes", default=None, metavar="C,C,...",
+                   help="keep only points of these classification codes (LAS/LAZ; e.g. 2,6 for ground "
+                        "and buildings)")
+    s.add_argument("--columns", default=None, metavar="NAMES",
+                   help="what the columns of a text file (.xyz .pts .txt .csv) are, e.g. 'x y z i r g b' "
+                        "(nx ny nz, r g b, i, classification; _ skips one); default: a header line or a guess")
     s.add_argument("--scan", action="store_true",
                    help=f"the input is an open scan: trim the surface far from the points and drop small "
                         f"pieces (same as --trim {SCAN_TRIM:g} --min-piece {SCAN_MIN_PIECE:g})")
@@ -137,7 +147,22 @@ def options_from_args(args) -> Options:
     )
 
 
+def _classes(text):
+    """``--classes 2,6`` as a tuple of ints (None when not given)."""
+    if text is None:
+        return None
+    try:
+        codes = tuple(int(c) for c in text.replace(" ", "").split(",") if c)
+    except ValueError:
+        codes = ()
+    if not codes or any(not 0 <= c <= 255 for c in codes):
+        raise NKFInputError(f"--classes takes classification codes 0-255 separated by commas, got '{text}'")
+    return codes
+
+
 def cmd_reconstruct(args) -> int:
+    import numpy as np
+
     from .io.files import check_output_path, read_point_cloud, write_mesh
     from .pipeline import budget
     from .pipeline.reconstruct import reconstruct
@@ -149,7 +174,7 @@ def cmd_reconstruct(args) -> int:
 
         load_weights(opts.weights)  # a bad weights file fails before the input is read
     t0 = time.perf_counter()
-    cloud = read_point_cloud(args.input)
+    cloud = read_point_cloud(args.input, classes=_classes(args.classes), columns=args.columns)
     if opts.normals_mode == "given" and cloud.normals is None:
         raise MissingNormalsError(
             f"{args.input}: the points have no normals (nx ny nz); normals are required with "
@@ -161,6 +186,14 @@ def cmd_reconstruct(args) -> int:
     colors = None if args.no_colors else cloud.colors
     if len(points) == 0:
         raise NKFInputError(f"{args.input}: the file holds no points")
+    # Viewpoints in the points' frame: the user's (file coordinates) less the offset, else the file's own.
+    viewpoints = None
+    if args.viewpoint:
+        viewpoints = [list(map(float, np.asarray(v, np.float64) - cloud.offset)) for v in args.viewpoint]
+    elif cloud.viewpoints is not None and estimate_n:
+        viewpoints = cloud.viewpoints
+        k = len(viewpoints)
+        _say(f"{args.input}: orienting estimated normals towards its {k} scanner position{'s' if k != 1 else ''}")
     t_read = time.perf_counter() - t0
     n_used = len(points)
     if opts.max_points is not None and len(points) > opts.max_points:
@@ -182,13 +215,17 @@ def cmd_reconstruct(args) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             mesh = reconstruct(points, normals, options=opts, progress=progress, cancel=cancel,
-                               viewpoints=args.viewpoint, colors=colors)
+                               viewpoints=viewpoints, colors=colors)
     finally:
         close()
     for w in caught:
         _say(f"warning: {w.message}")
     t1 = time.perf_counter()
-    write_mesh(out, mesh.vertices, mesh.faces, mesh.normals, mesh.colors)
+    if np.any(cloud.offset):  # back to the file's (map) coordinates, in float64
+        local = np.asarray(mesh.center, np.float64) + np.asarray(mesh.local_vertices, np.float64)
+        write_mesh(out, local, mesh.faces, mesh.normals, mesh.colors, offset=cloud.offset)
+    else:
+        write_mesh(out, mesh.vertices, mesh.faces, mesh.normals, mesh.colors)
     t_write = time.perf_counter() - t1
     if not args.quiet:
         st = mesh.stats
@@ -206,7 +243,8 @@ def cmd_reconstruct(args) -> int:
         note = f" ({'; '.join(extra)})" if extra else ""
         print(
             f"{out}: {st['points_used']:,} points{note} -> {st['triangles']:,} triangles "
-            f"({st['vertices']:,} vertices) in {time.perf_counter() - t0:.2f}s [{times}]"
+            f"({st['vertices']:,} vertices) in {time.perf_counter() - t0:.2f}s [{times}]; "
+            f"read {args.input}: {cloud.describe()}"
         )
     return 0
 

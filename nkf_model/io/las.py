@@ -55,7 +55,13 @@ def read_las(path, *, classes=None, progress=None, chunk_size: int = CHUNK) -> P
         reader = laspy.open(str(p))
     except PermissionError:
         raise PointCloudFileError(f"{p}: permission denied") from None
-    except Exception as exc:  # LaspyException, unsupported versions and point formats, short files
+    except laspy.errors.PointFormatNotSupported as exc:
+        raise PointCloudFileError(
+            f"{p}: unsupported LAS point format {exc} (laspy reads point formats 0-10)"
+        ) from None
+    except laspy.errors.FileVersionNotSupported as exc:
+        raise PointCloudFileError(f"{p}: unsupported LAS version {exc} (laspy reads 1.0-1.4)") from None
+    except Exception as exc:  # LaspyException, short or foreign files
         raise PointCloudFileError(f"{p}: not a readable LAS/LAZ file ({_first_line(exc)})") from None
     with reader:
         header = reader.header
