@@ -11,6 +11,7 @@ dimensions named like normals (``nx``, ``normal_x``, ...) become the normals.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,18 @@ def read_las(path, *, classes=None, progress=None, chunk_size: int = CHUNK) -> P
         Missing file, laspy or lazrs not installed, not a LAS file, an unsupported point format or
         version, a truncated or corrupt file, no points (of the classes asked for).
     """
+    # laspy logs the errors it raises (lazrs' "failed to fill whole buffer" on a truncated LAZ);
+    # the one-line message below says it, so its log stays quiet while reading.
+    log = logging.getLogger("laspy")
+    level = log.level
+    log.setLevel(logging.CRITICAL)
+    try:
+        return _read_las(path, classes, progress, chunk_size)
+    finally:
+        log.setLevel(level)
+
+
+def _read_las(path, classes, progress, chunk_size) -> PointCloud:
     p = Path(path)
     if not p.is_file():
         raise PointCloudFileError(f"{p}: no such file" if not p.exists() else f"{p}: is not a file")
