@@ -45,6 +45,8 @@ METHODS = SETTING["method"].values  # ("splines", "nkf")
 # Public names whose modules load on first use: name -> module that defines it.
 _LAZY = {
     "reconstruct": ".pipeline.reconstruct",
+    "fit": ".pipeline.reconstruct",
+    "Fit": ".pipeline.fitted",
     "estimate": ".pipeline.budget",
     "Estimate": ".pipeline.budget",
     "Mesh": ".surface.mesh",
@@ -68,6 +70,8 @@ def __dir__():
 
 __all__ = [
     "reconstruct",
+    "fit",
+    "Fit",
     "Options",
     "SETTINGS",
     "Mesh",

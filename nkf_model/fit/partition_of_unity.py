@@ -121,7 +121,7 @@ class PoUFunction:
     """
 
     def __init__(self, lo, h, dims, start, count, cu, beta, coarse: KernelFunction, engine: Engine, features=None,
-                 far: FarField | None = None, cancel_poll: CancelPoll = None):
+                 far: FarField | None = None, cancel_poll: CancelPoll = None, far_nodes=None):
         self.lo, self.h, self.dims = float(lo), float(h), int(dims)
         self.start, self.count = start, count
         self.cu = np.ascontiguousarray(cu)  # (D, C)
@@ -132,15 +132,20 @@ class PoUFunction:
         # The coarse fit is smooth and only stands in far from the data: sample it once on a grid
         # and interpolate, instead of summing its centres at every query. ``far`` (winding numbers
         # of the input, nkf_model.points.winding) overrides its sign where the two disagree, except at
-        # nodes within FAR_NEAR_CELLS cells of the input points.
+        # nodes within FAR_NEAR_CELLS cells of the input points. ``far_nodes``: the winding numbers
+        # and the near-data mask at the nodes from an earlier function of the same points (a refit).
         g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
         nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
         self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
         f0 = coarse(nodes, cancel_poll=cancel_poll)
-        if far is not None:
+        self.far_nodes = far_nodes
+        if far is not None and far_nodes is None:
             w = far(nodes, cancel_poll)
             d, _ = cKDTree(far.points).query(nodes, distance_upper_bound=FAR_NEAR_CELLS * self.f0_step, workers=-1)
-            f0 = np.where(np.isfinite(d), f0, follow_winding(f0, w, winding_scale(w, f0)))
+            self.far_nodes = (w, np.isfinite(d))
+        if self.far_nodes is not None:
+            w, near = self.far_nodes
+            f0 = np.where(near, f0, follow_winding(f0, w, winding_scale(w, f0)))
         self.f0_grid = np.ascontiguousarray(f0.reshape(COARSE_GRID + 1, COARSE_GRID + 1, COARSE_GRID + 1))
 
     def __call__(self, x: np.ndarray, cancel_poll: CancelPoll = None) -> np.ndarray:
@@ -216,6 +221,7 @@ def fit_pou(
     seed: int = 0,
     cancel_poll: CancelPoll = None,
     step: Step = None,
+    keep: bool = False,
 ):
     """Fit the partition-of-unity function to labelled constraints.
 
@@ -249,10 +255,13 @@ def fit_pou(
         :data:`COARSE_POINTS` points guesses the sign away from thin parts (both sheets cancel) and
         put spurious inside regions there (IoU 0.73 instead of 0.96 on a manta ray of 10,000 points).
         Within :data:`FAR_NEAR_CELLS` cells of the coarse grid from the data the coarse fit is kept.
+    keep : bool
+        Also return a :class:`PoURefit` that fits a new lambda without redoing the patches' layout,
+        the winding numbers or (after :meth:`PoURefit.factorize`) any factorisation.
 
     Returns
     -------
-    PoUFunction, PoUInfo
+    PoUFunction, PoUInfo (and PoURefit with ``keep``)
     """
     n = len(x)
     local_lam = lam if patch_lam is None else float(patch_lam)
@@ -266,7 +275,7 @@ def fit_pou(
     n_coarse = min(coarse_points, n)
     sub = farthest_point_sample(x, n_coarse, seed=seed)
     # The coarse fit reuses the given constraints of the chosen points (same eps, same features).
-    rows = np.concatenate([sub, sub + n])
+    rows_c = rows = np.concatenate([sub, sub + n])
     ac, yc = (a if coarse_a is None else coarse_a)[rows], y[rows]
     alpha_c, _ = solve_dense(ac, yc, lam, engine, cancel_poll=cancel_poll)
     coarse = KernelFunction(ac, alpha_c, engine, features=features if coarse_a is None else None)
@@ -337,6 +346,10 @@ def fit_pou(
     )
     far = None if normals is None else FarField(x, normals, seed=seed, cancel_poll=cancel_poll)
     fn = PoUFunction(lo, h, dims, start, count, cu, beta, coarse, engine, features, far=far, cancel_poll=cancel_poll)
+    if keep:
+        state = PoURefit(fn=fn, info=info, a=a, y=y, coarse_rows=rows_c, coarse_a=coarse_a,
+                         patches=[(p, np.concatenate([ids, ids + n])) for p, ids in jobs], lam=float(lam))
+        return fn, info, state
     return fn, info
 
 
@@ -354,3 +367,95 @@ def _single_thread_blas():
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(1)
+
+
+class PoURefit:
+    """What a new lambda needs from a fitted partition of unity (:func:`fit_pou` with ``keep``).
+
+    The patches' layout and members, the coarse fit's points and the winding numbers at the coarse
+    grid's nodes are kept; :meth:`refit` solves the coarse fit and the patches again with a new
+    lambda, by Cholesky as :func:`fit_pou` does (the same function to the bit), or, after
+    :meth:`factorize`, from each patch's eigendecomposition (:class:`nkf_model.fit.refit.GramEigen`):
+    two matrix-vector products per patch.
+
+    Attributes
+    ----------
+    a : (2N, D) float64, y : (2N,) float64
+        The constraints (shared, not copied).
+    patches : list of (int, (m,) int)
+        Fitted patch index and its constraint rows.
+    lam : float
+        The lambda of ``fn``.
+    """
+
+    def __init__(self, *, fn: PoUFunction, info: PoUInfo, a, y, coarse_rows, coarse_a, patches, lam: float):
+        self.fn, self.info, self.a, self.y = fn, info, a, y
+        self.coarse_rows, self.coarse_a, self.patches, self.lam = coarse_rows, coarse_a, patches, lam
+        self.coarse_eigen = None
+        self.patch_eigen = None  # list of (GramEigen, norms r (m,))
+
+    @property
+    def factorized(self) -> bool:
+        return self.patch_eigen is not None
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the factorisations (the rest is shared with the fit)."""
+        total = 0 if self.coarse_eigen is None else self.coarse_eigen.nbytes
+        for eig, r in self.patch_eigen or ():
+            total += eig.nbytes + r.nbytes
+        return total
+
+    def factorize(self, cancel_poll: CancelPoll = None) -> None:
+        """Eigendecompose the coarse fit's and every patch's Gram matrix (once)."""
+        from .refit import GramEigen
+
+        if self.factorized:
+            return
+        ac = (self.a if self.coarse_a is None else self.coarse_a)[self.coarse_rows]
+        u, r = split_unit(ac)
+        coarse = GramEigen.of(self.fn.engine.gram(u, r, 0.0, cancel_poll=cancel_poll))
+        out = []
+        for i, (_, rows) in enumerate(self.patches):
+            if cancel_poll is not None and i % 64 == 0:
+                cancel_poll()
+            u, r = split_unit(self.a[rows])
+            out.append((GramEigen.of(pk.gram_general(u, r, 0.0)), r))
+        self.coarse_eigen, self.patch_eigen = coarse, out
+
+    def refit(self, lam: float, patch_lam: float | None = None, cancel_poll: CancelPoll = None) -> PoURefit:
+        """The partition of unity for a new ``lam`` (``patch_lam`` for the patches, default ``lam``)."""
+        old, engine = self.fn, self.fn.engine
+        local_lam = float(lam) if patch_lam is None else float(patch_lam)
+        ac = (self.a if self.coarse_a is None else self.coarse_a)[self.coarse_rows]
+        yc = self.y[self.coarse_rows]
+        if self.coarse_eigen is not None:
+            alpha_c = self.coarse_eigen.solve(yc, len(ac) * float(lam))
+        else:
+            alpha_c, _ = solve_dense(ac, yc, float(lam), engine, cancel_poll=cancel_poll)
+        coarse = KernelFunction(ac, alpha_c, engine, features=old.coarse.features)
+        if local_lam == self.info.patch_lam:
+            beta = old.beta
+        else:
+            beta = np.empty_like(old.beta)
+            if self.patch_eigen is not None:
+                for (patch, rows), (eig, r) in zip(self.patches, self.patch_eigen):
+                    o, m = old.start[patch], old.count[patch]
+                    beta[o : o + m] = eig.solve(self.y[rows], m * local_lam) * r
+            else:
+                def work(job):
+                    return job[0], _solve_patch(self.a[job[1]], self.y[job[1]], local_lam)[1]
+
+                workers = max(1, min(os.cpu_count() or 1, _numba_threads()))
+                with _single_thread_blas(), ThreadPoolExecutor(workers) as ex:
+                    for patch, b in ex.map(work, self.patches):
+                        beta[old.start[patch] : old.start[patch] + old.count[patch]] = b
+            if cancel_poll is not None:
+                cancel_poll()
+        fn = PoUFunction(old.lo, old.h, old.dims, old.start, old.count, old.cu, beta, coarse, engine, old.features,
+                         cancel_poll=cancel_poll, far_nodes=old.far_nodes)
+        info = PoUInfo(**{**self.info.__dict__, "patch_lam": local_lam})
+        new = PoURefit(fn=fn, info=info, a=self.a, y=self.y, coarse_rows=self.coarse_rows, coarse_a=self.coarse_a,
+                       patches=self.patches, lam=float(lam))
+        new.coarse_eigen, new.patch_eigen = self.coarse_eigen, self.patch_eigen
+        return new

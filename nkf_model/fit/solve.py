@@ -87,7 +87,8 @@ class KernelFunction:
         return self.engine.kernel_sum(qu, qr, self._cu, self._cr, self.alpha, cancel_poll)
 
 
-def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, cancel_poll: CancelPoll = None):
+def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, cancel_poll: CancelPoll = None,
+                keep_gram: bool = False):
     """Exact solve of ``(G + N lam I) alpha = y``.
 
     Parameters
@@ -99,10 +100,15 @@ def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, cancel
     lam : float
         Regularisation per constraint (>= 0).
 
+    keep_gram : bool
+        Also return the Gram matrix ``G`` (N, N) float64 without ``N lam`` and jitter on its
+        diagonal, for :mod:`nkf_model.fit.refit` (a new lambda without a new Gram matrix).
+
     Returns
     -------
     alpha : (N,) float64
     info : SolveInfo
+    gram : (N, N) float64, only with ``keep_gram``
     """
     u, r = split_unit(a)
     n = len(a)
@@ -120,6 +126,10 @@ def solve_dense(a: np.ndarray, y: np.ndarray, lam: float, engine: Engine, cancel
             G[np.diag_indices(n)] += step
             jitter += step
     alpha = linalg.solve_lower(L, linalg.solve_lower(L, y), transpose=True)
+    if keep_gram:
+        del L
+        G[np.diag_indices(n)] -= n * lam + jitter  # the factorisation worked on a copy
+        return alpha, SolveInfo("dense", n, n, jitter=jitter), G
     return alpha, SolveInfo("dense", n, n, jitter=jitter)
 
 

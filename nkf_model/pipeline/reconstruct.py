@@ -13,29 +13,23 @@ from collections.abc import Callable
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ..errors import InputWarning, MissingNormalsError, NoSurfaceError
+from ..errors import InputWarning, MissingNormalsError
 from ..fit.augment import augment, default_eps
-from ..fit.partition_of_unity import fit_pou, patch_spacing
-from ..fit.solve import KernelFunction, SolveInfo, solve_dense, solve_falkon
 from ..kernel.engines import cpu_engine, select_engine
 from ..kernel.neural_spline import homogeneous
 from ..kernel.weights import load_weights
 from ..normals.estimate import DEFAULT_K as NORMAL_K
-from ..normals.estimate import check_orientation, check_viewpoints, estimate_normals, median_spacing
+from ..normals.estimate import check_orientation, check_viewpoints, estimate_normals
 from ..options import SETTING, Options
 from ..points.clean import clean_points
-from ..points.farthest_point import farthest_point_sample
 from ..points.noise import estimate_noise, noise_lam
 from ..points.normalise import GRID_HALF, Normalisation
 from ..points.subset import random_subset
 from ..points.voxel_reduce import voxel_for_count, voxel_reduce
-from ..points.winding import BlendedField
-from ..surface.colors import as_rgb8, transfer_colors
-from ..surface.evaluate import evaluate_sparse
-from ..surface.mesh import Mesh, triangulate, vertex_normals
-from ..surface.trim import clean_scan_mesh
+from ..surface.colors import as_rgb8
+from ..surface.mesh import Mesh
 from . import budget
-from .device_fallback import run_with_cpu_fallback
+from .fitted import BLAS_THREADS, FALKON_TOL, FAR_END, FAR_START, Fit, Prepared, _Shared, mesh_stages
 from .progress import Tracker
 
 METHODS = SETTING["method"].values
@@ -52,12 +46,8 @@ DEFAULT_CENTRES = SETTING["max_centres"].default
 DEFAULT_REDUCE_TO = SETTING["reduce_to"].default
 NORMALS_MODES = SETTING["normals_mode"].values
 SOLVERS = SETTING["solver"].values
-# Relative residual at which Falkon's conjugate gradient stops: 1e-6 gave the same IoU and Chamfer as
-# 1e-9 on 12 validation meshes at 10,000 points, in 17 iterations instead of 25.
-FALKON_TOL = 1e-6
-# Threads for dense linear algebra (OpenBLAS). One: on a busy 2-core machine (Blender's UI, another
-# job) two OpenBLAS threads ran a 2,000 x 2,000 Cholesky 8x slower than one, and a 6,000 one 2x slower.
-BLAS_THREADS = 1
+# FALKON_TOL (Falkon's stopping residual) and BLAS_THREADS (one OpenBLAS thread) live with the solve in
+# nkf_model.pipeline.fitted, and so do FAR_START and FAR_END:
 # Global fits (dense, Falkon) follow the point cloud's winding number away from the data: the blend
 # starts FAR_START and ends FAR_END patch spacings (pou.patch_spacing, about 0.1 of the box at 1,000
 # points) from the nearest point (nkf_model.points.winding.BlendedField). Chosen on 14 training-split meshes
@@ -65,8 +55,7 @@ BLAS_THREADS = 1
 # inputs of 3,000 points, learned kernel, IoU 0.4242 without, 0.5084 / 0.5142 / 0.5112 with (1, 2) /
 # (1.5, 3) / (2, 4); whole inputs of 1,000 and 3,000 points (splines) unchanged. The rule kept keeps
 # the fit wherever its sign agrees with the winding number (docs/benchmarks.md has the 52-mesh runs).
-FAR_START = 1.5
-FAR_END = 3.0
+__all__ = ["reconstruct", "fit", "Fit", "BLAS_THREADS", "FALKON_TOL", "FAR_START", "FAR_END"]
 # The learned kernel's local fits (above 3,000 points: denser than it was trained on) take the same
 # noise-aware regularisation, in proportion to its magnitude: lam = NKF_NOISE_LAM_FACTOR * r * 6 s^2,
 # with r the ratio of the mean Gram diagonals of the learned and the data-free kernel (about 4,700 for
@@ -220,9 +209,50 @@ def reconstruct(
                             viewpoints=viewpoints, colors=colors)
 
 
-def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, viewpoints, colors):
+def fit(
+    points,
+    normals=None,
+    *,
+    options: Options | None = None,
+    progress: Callable[[float, str], None] | None = None,
+    cancel=None,
+    viewpoints=None,
+    colors=None,
+    keep_factors: bool = True,
+    **settings,
+) -> Fit:
+    """The stages of :func:`reconstruct` up to the solve; mesh the result with :meth:`Fit.mesh`.
+
+    Takes exactly the arguments of :func:`reconstruct` (``options``, keywords, ``progress`` with
+    the stages up to ``"solve"``, ``cancel``, ``viewpoints``, ``colors``). ``fit(...).mesh()`` gives
+    the same mesh as ``reconstruct(...)``; :meth:`Fit.mesh` meshes it again at another resolution
+    (evaluate and mesh only) and :meth:`Fit.with_lam` re-solves it for another lambda (no normals,
+    features or patch layout again; after :meth:`Fit.factorize`, from a stored eigendecomposition).
+
+    ``keep_factors``: keep the Gram matrix of a dense solve (8 (2N)^2 bytes: 288 MB at 3,000 points)
+    for :meth:`Fit.factorize`, and the partition of unity's patch layout. ``False`` keeps only what
+    :meth:`Fit.mesh` needs; :meth:`Fit.with_lam` then solves from the constraints.
+
+    Returns
+    -------
+    Fit
+    """
+    opts = Options.build(options, **settings)
+    if opts.normals_mode == "given" and normals is None:
+        raise MissingNormalsError(
+            "normals are required with normals_mode='given': pass one unit normal per point, "
+            "or use normals_mode='auto' to estimate them"
+        )
+    model = load_weights(opts.weights) if opts.method == "nkf" else None
+    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        return _reconstruct(points, normals, opts, model=model, progress=progress, cancel=cancel,
+                            viewpoints=viewpoints, colors=colors, mesh=False, keep=keep_factors)
+
+
+def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, viewpoints, colors,
+                 mesh: bool = True, keep: bool = False):
     method, lam, resolution, seed = opts.method, opts.lam, opts.resolution, opts.seed
-    normals_mode, trim, min_piece, close = opts.normals_mode, opts.trim, opts.min_piece, opts.close
+    normals_mode, trim = opts.normals_mode, opts.trim
     reduce_to, solver, max_centres = opts.reduce_to, opts.solver, opts.max_centres
     vp = check_viewpoints(viewpoints)
     orient = check_orientation(opts.orientation, vp)
@@ -236,8 +266,8 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     engine = select_engine(opts.device)
     stages = (["subsample"] if subset else []) + ["normalise"] + (["reduce"] if plan.reduced else [])
     stages += ["normals"] if estimate_n else []
-    stages += ["augment"] + (["features"] if model is not None else []) + ["solve", "evaluate", "mesh"]
-    stages += (["clean"] if (trim is not None or min_piece > 0) else []) + (["colors"] if colors is not None else [])
+    stages += ["augment"] + (["features"] if model is not None else []) + ["solve"]
+    stages += mesh_stages(opts, colors is not None) if mesh else []
     track = Tracker(progress, cancel, stages=stages)
     subset_info = None
     if subset:
@@ -301,15 +331,21 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     # Noisy input: the local solves of the partition of unity regularise in proportion to the
     # estimated noise variance (nkf_model.points.noise) instead of interpolating the noise; clean input
     # keeps ``lam``. The learned kernel's, scaled to its magnitude (NKF_NOISE_LAM_FACTOR).
-    patch_lam = None
+    # A function of lambda, so that a kept fit (nkf_model.pipeline.fitted.Fit.with_lam) re-solves as a
+    # fresh run would.
+    ratio = None
     if kind == "pou":
         if sigma is None:
             sigma = estimate_noise(x, nrm)
-        if model is None:
-            patch_lam = noise_lam(sigma, lam)
-        else:
+        if model is not None:
             ratio = float(np.mean(np.einsum("ij,ij->i", a, a)) / np.mean(np.einsum("ij,ij->i", xa, xa) + 1.0))
-            patch_lam = max(float(lam), NKF_NOISE_LAM_FACTOR * ratio * noise_lam(sigma, 0.0))
+
+    def patch_lam(value: float):
+        if kind != "pou":
+            return None
+        if model is None:
+            return noise_lam(sigma, value)
+        return max(float(value), NKF_NOISE_LAM_FACTOR * ratio * noise_lam(sigma, 0.0))
 
     # Away from the data the field follows the input's winding number, which assumes a closed
     # surface. Open scans (``trim`` set) keep the fit's own sign there: on the scene benchmark the far
@@ -317,67 +353,7 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     # with it, 0.00234 without; F-score at 0.5 % 0.9332 against 0.9594).
     far_field = trim is None
 
-    def fit_and_evaluate(eng):
-        track.begin("solve")
-        pou_info = None
-        if kind == "dense":
-            alpha, info = solve_dense(a, y, float(lam), eng, cancel_poll=track.cancel_poll)
-            fn = KernelFunction(a, alpha, eng, features=phi)
-            n_centres = len(a)
-        elif kind == "falkon":
-            half = farthest_point_sample(x, min(n, max_centres // 2), seed=seed)
-            idx = np.concatenate([half, half + n])
-            alpha, info = solve_falkon(a, y, idx, float(lam), eng, tol=FALKON_TOL, cancel_poll=track.cancel_poll,
-                                       step=track.step)
-            fn = KernelFunction(a[idx], alpha, eng, features=phi)
-            n_centres = len(idx)
-        else:
-            fn, pou_info = fit_pou(x, a, y, float(lam), eng, seed=seed, cancel_poll=track.cancel_poll, step=track.step,
-                                   features=phi, coarse_a=None if phi is None else homogeneous(xa),
-                                   normals=nrm if far_field else None, patch_lam=patch_lam)
-            info = SolveInfo("pou", len(a), pou_info.centres)
-            n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
-        if kind != "pou" and far_field:
-            h = patch_spacing(x, seed=seed)
-            fn = BlendedField(fn, x, nrm, FAR_START * h, FAR_END * h, GRID_HALF, seed=seed,
-                              cancel_poll=track.cancel_poll)
-        track.begin("evaluate")
-        field_ = evaluate_sparse(
-            lambda p: fn(p, cancel_poll=track.cancel_poll), resolution, cancel_poll=track.cancel_poll, step=track.step,
-            seeds=x, close=close,
-        )
-        return info, pou_info, n_centres, field_, eng
-
-    info, pou_info, n_centres, field_, engine = run_with_cpu_fallback(fit_and_evaluate, engine)
-
-    track.begin("mesh")
-    unit_v, faces = triangulate(field_, cancel_poll=track.cancel_poll, step=track.step)
-    if len(faces) == 0:
-        raise NoSurfaceError(
-            "the fitted function has no zero crossing inside the grid; check that the normals "
-            "point out of the surface, or lower lambda"
-        )
-    trim_info = None
-    if trim is not None or min_piece > 0:
-        track.begin("clean")
-        spacing = median_spacing(x)
-        faces, kept, trim_info = clean_scan_mesh(
-            unit_v, faces, x, spacing, trim=trim, min_piece=min_piece, floor=2.0 * GRID_HALF / resolution
-        )
-        unit_v = unit_v[kept]
-        trim_info.threshold *= norm.scale  # report it in the input's units
-        if len(faces) == 0:
-            raise NoSurfaceError(
-                "trimming removed the whole surface; raise trim (in point spacings) or lower min_piece"
-            )
-    normals_v = vertex_normals(unit_v, faces)
-    vertex_rgb = None
-    if rgb is not None:
-        track.begin("colors")
-        vertex_rgb = transfer_colors(unit_v, x, rgb)
-    local = unit_v * norm.scale
-    track.finish()
-    stats = {
+    info = {
         "method": method,
         "weights": str(model.meta.get("path", "")) if model is not None else None,
         "points_in": n_in,
@@ -385,16 +361,6 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
         "dropped": dict(clean.dropped),
         "warnings": clean.warnings(),
         "eps": eps_used,
-        "lam": float(lam),
-        "solver": info.method,
-        "centres": info.centres,
-        "cg_iterations": info.iterations,
-        "kernel_evaluations_grid": int(field_.evaluations) * n_centres,
-        "grid_points_evaluated": int(field_.evaluations),
-        "level_evaluations": field_.level_evaluations,
-        "engine": f"{engine.name}:{engine.device}",
-        "vertices": int(len(unit_v)),
-        "triangles": int(len(faces)),
         "reduction": reduction,
         "subset": subset_info,
         "normals": "estimated" if estimate_n else "given",
@@ -402,25 +368,22 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
             "rule": normal_info.orientation, "pieces": normal_info.pieces, "decided_by_views": normal_info.seeded,
             "learned_check": normal_info.learned_check, "flipped_by_learned_check": normal_info.learned_flips,
         },
-        "pou": None if pou_info is None else dict(pou_info.__dict__),
         "feature_scale": feature_scale,
-        "far_field": far_field,
-        "close": close,
-        "trim": None if trim_info is None else dict(trim_info.__dict__),
-        "estimate": plan.as_dict(),
-        "timings": dict(track.timings),
-        "seconds": time.perf_counter() - t_start,
     }
-    return Mesh(
-        vertices=(local + norm.center).astype(np.float32),
-        faces=faces.astype(np.int32),
-        normals=normals_v.astype(np.float32),
-        center=norm.center.copy(),
-        scale=norm.scale,
-        local_vertices=local.astype(np.float32),
-        colors=vertex_rgb,
-        stats=stats,
+    prep = Prepared(
+        options=opts, x=x, normals=nrm, rgb=rgb, norm=norm, a=a, y=y, phi=phi,
+        coarse_a=None if phi is None else homogeneous(xa), kind=kind, engine=engine, patch_lam=patch_lam,
+        far_field=far_field, info=info, n_in=n_in, estimate_normals=estimate_n,
     )
+    fitted = Fit(prep, float(lam), _Shared(keep))
+    fitted._solve(track)
+    prep.timings = dict(track.timings)
+    fitted.timings = dict(track.timings)
+    if not mesh:
+        track.finish()
+        fitted.timings = dict(track.timings)
+        return fitted
+    return fitted._mesh(track, opts, t_start)
 
 
 def _row_count(points) -> int:
