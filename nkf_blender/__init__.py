@@ -12,6 +12,8 @@ The reconstruction itself is the ``nkf_model`` package, bundled as a wheel. Modu
 * ``settings`` reads every default, range and tooltip from ``nkf_model.options`` and maps the
   properties to one ``nkf_model.options.Options``; enabling imports nothing heavier than that
   (no PyTorch, SciPy, scikit-image, numba, nor nkf_model's reconstruction code);
+* ``importer``: File > Import > Point Cloud (LAS/LAZ, E57, XYZ, PCD, PLY through nkf_model's
+  readers; drag and drop) and File > Export > Mesh in Map Coordinates;
 * ``source`` (read points), ``result`` (build the mesh), ``runner`` (jobs on the main thread),
   ``settings``, ``ops``, ``panel``, ``prefs``, ``api``: the Blender side.
 """
@@ -20,9 +22,9 @@ from __future__ import annotations
 
 import bpy
 
-from . import deps, methods, ops, panel, prefs, runner, settings
+from . import deps, importer, methods, ops, panel, prefs, runner, settings
 
-_CLASSES = (settings.NKF_PG_settings, *prefs.CLASSES, *ops.CLASSES, *panel.CLASSES)
+_CLASSES = (settings.NKF_PG_settings, *prefs.CLASSES, *ops.CLASSES, *panel.CLASSES, *importer.CLASSES)
 
 
 def register() -> None:
@@ -42,6 +44,7 @@ def register() -> None:
         if cls is not prefs_cls:
             bpy.utils.register_class(cls)
     bpy.types.Scene.nkf_settings = bpy.props.PointerProperty(type=settings.NKF_PG_settings)
+    importer.register_menus()
 
 
 def unregister() -> None:
@@ -49,6 +52,7 @@ def unregister() -> None:
     if stuck:
         print(f"NKF: worker threads did not stop for {', '.join(stuck)}")
     prefs.stop_install()
+    importer.unregister_menus()
     del bpy.types.Scene.nkf_settings
     for cls in reversed(_CLASSES):
         bpy.utils.unregister_class(cls)

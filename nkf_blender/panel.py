@@ -47,7 +47,7 @@ def _normals_line(box, info, s, context) -> str:
         box.label(text=f"Normals: estimated ({orient})", icon="INFO")
     else:
         wrapped(box, f"No normals: they will be estimated ({orient})", icon="INFO", width=WRAP)
-    if s.orientation == "VIEWPOINT" and context.scene.camera is None:
+    if s.orientation == "VIEWPOINT" and context.scene.camera is None and not runner.scanners(context.active_object):
         return "Orientation Viewpoint needs a scene camera (where the scanner was)"
     return ""
 

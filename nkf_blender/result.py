@@ -15,6 +15,7 @@ import numpy as np
 
 SUFFIX = "_nkf"
 COLOR_ATTRIBUTE = "Col"
+OFFSET_PROPERTY = "nkf_offset"  # as importer.OFFSET_PROPERTY: the result exports back in map coordinates
 
 
 def mesh_data(name: str, mesh) -> bpy.types.Mesh:
@@ -84,6 +85,8 @@ def add_object(context, mesh, *, name: str, source, matrix_world, collections) -
     me = mesh_data(name, mesh)
     ob = bpy.data.objects.new(name, me)
     copy_transform(ob, source, matrix_world)
+    if source is not None and source.get(OFFSET_PROPERTY) is not None:  # an imported scan's map offset
+        ob[OFFSET_PROPERTY] = [float(v) for v in source[OFFSET_PROPERTY]]
     targets = [c for c in collections if c is not None] or [context.scene.collection]
     targets[0].objects.link(ob)
     view_layer = context.view_layer

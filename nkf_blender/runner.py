@@ -136,9 +136,27 @@ def prepare(
     return job, act
 
 
+SCANNER_PROPERTY = "nkf_scanner"  # as importer.SCANNER_PROPERTY: an E57 scanner position
+
+
+def scanners(obj) -> list:
+    """The scanner-position empties of an imported scan (its children marked ``nkf_scanner``)."""
+    if obj is None:
+        return []
+    return [c for c in obj.children if c.get(SCANNER_PROPERTY)]
+
+
 def viewpoint(context, obj):
-    """The scene camera's world position in ``obj``'s local frame, (1, 3) float64: the scanner
-    position that estimated normals point towards (orientation Viewpoint)."""
+    """The scanner positions that estimated normals point towards (orientation Viewpoint), in
+    ``obj``'s local frame, (K, 3) float64: the scanner empties of an imported E57 scan when it has
+    them, else the scene camera's world position."""
+    found = scanners(obj)
+    if found:
+        try:
+            inv = obj.matrix_world.inverted()
+        except ValueError:
+            raise UserError(f"'{obj.name}' has a flat (non-invertible) transform; apply or fix its scale") from None
+        return np.array([tuple(inv @ c.matrix_world.translation) for c in found], dtype=np.float64)
     cam = context.scene.camera if context.scene is not None else None
     if cam is None:
         raise UserError(

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PointCloudFileError
-from .cloud import Gatherer, PointCloud, color_scale, colors_to_uint8
+from .cloud import Gatherer, PointCloud, color_scale, colors_to_uint8, require
 
 NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"), ("normalx", "normaly", "normalz"),
                 ("n_x", "n_y", "n_z"))
@@ -30,8 +30,7 @@ CHUNK = 1_000_000
 
 def open_ply(path):
     """Parse ``path`` with plyfile; one-line :class:`PointCloudFileError` for every failure."""
-    from plyfile import PlyData
-
+    PlyData = require("plyfile", "PLY files", "plyfile").PlyData
     p = Path(path)
     if not p.exists():
         raise PointCloudFileError(f"{p}: no such file")
