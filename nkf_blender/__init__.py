@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import deps, importer, methods, ops, panel, prefs, runner, settings
+from . import deps, importer, methods, ops, panel, prefs, prepare, runner, settings
 
 _CLASSES = (settings.NKF_PG_settings, *prefs.CLASSES, *ops.CLASSES, *panel.CLASSES, *importer.CLASSES)
 
@@ -44,10 +44,27 @@ def register() -> None:
         if cls is not prefs_cls:
             bpy.utils.register_class(cls)
     bpy.types.Scene.nkf_settings = bpy.props.PointerProperty(type=settings.NKF_PG_settings)
+    if not bpy.app.background:
+        # Compile the solver once, in the background, a moment after enabling (not during it: enabling
+        # stays cheap); timers never fire headless, where the first run compiles instead.
+        bpy.app.timers.register(_start_prepare, first_interval=1.0)
     importer.register_menus()
 
 
+def _start_prepare():
+    """Timer: start the first-time preparation, then redraw its progress every 0.5 s until it ends."""
+    if prepare.status().state == prepare.IDLE:
+        if not deps.status().ready or not prepare.start(prefs.prepare_folder()):
+            return None
+    ops._tag_redraw(bpy.context)
+    return 0.5 if prepare.running() else None
+
+
 def unregister() -> None:
+    if bpy.app.timers.is_registered(_start_prepare):
+        bpy.app.timers.unregister(_start_prepare)
+    if not prepare.stop():
+        print("NKF: the first-time preparation did not stop")
     stuck = runner.stop_all()
     if stuck:
         print(f"NKF: worker threads did not stop for {', '.join(stuck)}")

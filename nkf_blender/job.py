@@ -14,6 +14,8 @@ import traceback
 from nkf_model.options import Options
 from nkf_model.pipeline.stages import STAGE_LABELS
 
+from .devices import describe as describe_device
+
 __all__ = ["ReconstructJob", "STAGE_LABELS", "PENDING", "RUNNING", "DONE", "FAILED", "CANCELLED"]
 
 PENDING, RUNNING, DONE, FAILED, CANCELLED = "pending", "running", "done", "failed", "cancelled"
@@ -53,6 +55,7 @@ class ReconstructJob:
         self.result = None
         self.error: str | None = None
         self.notes: list[str] = []
+        self.device = ""  # which device ran it, in words (nkf_blender.devices), once done
         self.points_used = 0
         self.thread: threading.Thread | None = None
         self.t_start = 0.0
@@ -149,6 +152,7 @@ class ReconstructJob:
             else:
                 self.points_used = n
             self.notes.extend(mesh.stats.get("warnings", []))
+            self.device = describe_device(mesh.stats)
             if estimate:
                 rule = run.orientation or ("viewpoint" if self.viewpoints is not None else "outward")
                 self.notes.append(f"normals estimated (oriented {rule})")

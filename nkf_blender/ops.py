@@ -39,7 +39,27 @@ class OBJECT_OT_nkf_reconstruct(bpy.types.Operator):
 
     bl_idname = "object.nkf_reconstruct"
     bl_label = "Reconstruct Surface"
-    bl_options = {"REGISTER", "UNDO"}
+    # No "REGISTER": Adjust Last Operation (F9) would call execute(), which runs the whole
+    # reconstruction on the main thread (Blender frozen, no progress, no cancel), so it is not
+    # offered; the panel re-runs with changed settings through the worker. "UNDO": one step.
+    bl_options = {"UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        """A mesh or point cloud is active, Object Mode (or a mesh's Edit Mode), no job on it."""
+        obj = context.active_object
+        why = ""
+        if context.mode not in {"OBJECT", "EDIT_MESH"}:
+            why = "Reconstruct works in Object Mode"
+        elif obj is None:
+            why = "No active object: select a mesh or point cloud"
+        elif obj.type not in {"MESH", "POINTCLOUD"}:
+            why = f"'{obj.name}' is a {obj.type.lower()} object; select a mesh or point cloud"
+        elif runner.active_job(obj) is not None:
+            why = f"'{obj.name}' is already running a reconstruction"
+        if why:
+            cls.poll_message_set(why)
+        return not why
 
     # Properties (method, regularization, resolution, max_points, device, and for scans
     # normals_mode, orientation, use_scan, trim, min_piece, use_close, use_colors) are added by

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import deps, estimates, methods, ops, prefs, runner, settings, source
+from . import deps, estimates, methods, ops, prefs, prepare, runner, settings, source
 from .errors import UserError
 from .prefs import ADDON, wrapped
 
@@ -35,6 +35,18 @@ def _deps_box(layout) -> bool:
     op = box.operator("preferences.addon_show", text="Open Add-on Preferences", icon="PREFERENCES")
     op.module = ADDON
     return st.ready
+
+
+def _prepare_line(layout) -> None:
+    """The first-time preparation (compiling the solver) while it runs, or why it failed."""
+    st = prepare.status()
+    if st.state == prepare.RUNNING:
+        layout.progress(factor=st.fraction, type="BAR",
+                        text=f"Preparing the solver (first time only) {st.fraction * 100:.0f}%")
+    elif st.state == prepare.FAILED:
+        col = layout.column()
+        col.alert = True
+        wrapped(col, f"Preparing the solver failed: {st.error}", icon="ERROR", width=WRAP)
 
 
 def _normals_line(box, info, s, context) -> str:
@@ -76,6 +88,7 @@ def _estimate_line(layout, info, s, context) -> str:
 
 def draw_panel(layout, context) -> None:
     ready = _deps_box(layout)
+    _prepare_line(layout)
     obj = context.active_object
     s = context.scene.nkf_settings
 

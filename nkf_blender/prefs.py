@@ -42,6 +42,14 @@ def user_site(create: bool = False) -> str:
         return path
 
 
+def prepare_folder() -> str | None:
+    """The extension's user ``cache`` folder, where the first-time preparation leaves its marker."""
+    try:
+        return bpy.utils.extension_path_user(ADDON, path="cache", create=True)
+    except (ValueError, OSError):  # a legacy add-on, or a read-only user folder: no marker
+        return None
+
+
 def get_prefs(context=None):
     context = context or bpy.context
     addon = context.preferences.addons.get(ADDON)

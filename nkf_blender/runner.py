@@ -51,6 +51,7 @@ class LastRun:
     triangles: int = 0
     result_name: str = ""
     message: str = ""
+    device: str = ""  # "CPU, 2 threads", "CUDA: NVIDIA ..."
 
 
 _active: dict[int, Active] = {}
@@ -256,6 +257,7 @@ def finish(context, key: int):
     record.triangles = len(job.result.faces)
     record.result_name = ob.name
     record.message = "; ".join(job.notes)
+    record.device = job.device
     _last[key_of(ob)] = record  # the panel shows it for the new (active) object too
     return ob
 
@@ -295,4 +297,5 @@ def summary(ob, key: int) -> str:
         return ""
     return (
         f"NKF: '{ob.name}' from {rec.points:,} points, {rec.triangles:,} triangles in {rec.seconds:.1f} s"
+        + (f" on {rec.device}" if rec.device else "")
     )

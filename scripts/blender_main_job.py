@@ -49,7 +49,7 @@ def parse_args(argv=None):
 def build_zip(out: Path) -> Path:
     run = subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "build_extension.py"), "--output-dir", str(out / "dist"),
-         "--stage-dir", str(out / "build-extension")],
+         "--stage-dir", str(out / "build-extension"), "--no-bundle"],  # this venv has the dependencies
         capture_output=True, text=True,
     )
     if run.returncode != 0:

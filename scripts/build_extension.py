@@ -2,7 +2,8 @@
 
 Usage::
 
-    .venv/bin/python scripts/build_extension.py [--output-dir dist] [--blender-ext PATH]
+    .venv/bin/python scripts/build_extension.py [--output-dir dist] [--platforms all|linux-x64,...]
+                                                [--no-bundle] [--blender-ext PATH]
 
 Steps:
 
@@ -10,13 +11,21 @@ Steps:
    contents of ``nkf_blender/`` (Blender wants the manifest and ``__init__.py`` side by side), and a
    ``wheels/`` folder with the pure-Python ``nkf_model`` wheel built from this repository
    (``pip wheel --no-deps``), without its training code (:data:`NOT_BUNDLED`);
-2. check that every wheel listed in the manifest is there and nothing else is;
-3. ``blender_ext.py validate`` on the staged folder;
-4. ``blender_ext.py build`` into ``dist/`` (``<id>-<version>.zip``).
+2. the compiled dependencies of the CPU path (:data:`BUNDLED`, exact versions, never NumPy) for each
+   platform in ``--platforms`` (:data:`PLATFORMS`), downloaded from the package registry with
+   ``pip download --only-binary=:all: --platform ... --python-version 3.11 --no-deps`` into the
+   git-ignored ``.wheel-cache/<platform>/`` (once; later builds use the cache and need no network),
+   copied to ``wheels/`` and listed, with ``platforms``, in the staged manifest;
+3. check that every wheel listed in the manifest is there and nothing else is;
+4. ``blender_ext.py validate`` on the staged folder;
+5. ``blender_ext.py build --split-platforms`` into ``dist/``: one self-contained zip per platform,
+   ``<id>-<version>-<platform>.zip`` (``linux_x64``, ...). With ``--no-bundle`` only the ``nkf_model``
+   wheel is bundled and one zip ``<id>-<version>.zip`` is built, for an environment that already has
+   SciPy, scikit-image and numba (the development tests in the project's venv).
 
 ``blender_ext.py`` ships inside the ``bpy`` wheel (``bpy/<version>/scripts/addons_core/bl_pkg/cli/``)
 and in every Blender install; it is found without importing ``bpy``. Prints the zip's path on the
-last line of stdout; exit status 1 with the tool's messages when anything fails.
+last lines of stdout, one per line; exit status 1 with the tool's messages when anything fails.
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -34,6 +44,37 @@ ROOT = Path(__file__).resolve().parent.parent
 MANIFEST = "blender_manifest.toml"
 ADDON_DIR = ROOT / "nkf_blender"
 STAGE = ROOT / "build" / "extension"
+WHEEL_CACHE = Path(os.environ.get("NKF_WHEEL_CACHE", ROOT / ".wheel-cache"))
+
+# What the CPU path imports beyond Blender's own Python (NumPy, requests, ...), pinned. scikit-image
+# is used only for marching cubes, which needs lazy_loader and none of its other dependencies
+# (networkx, pillow, imageio, tifffile: 10 MB left out). tqdm and plyfile are tiny pure-Python
+# wheels for nkf_model's files and progress bar. PyTorch is not bundled: NKF runs on the CPU with
+# the feature network's NumPy twin; the preferences install PyTorch for the GPU.
+BUNDLED = (
+    "scipy==1.17.1",
+    "scikit-image==0.26.0",
+    "lazy_loader==0.6",
+    "numba==0.68.1",
+    "llvmlite==0.50.0",
+    "threadpoolctl==3.8.0",
+    "safetensors==0.8.0",
+    "tqdm==4.70.1",
+    "plyfile==1.1.3",
+)
+
+# Blender's platform names -> the wheel platform tags pip may take for it (Blender 4.2 needs glibc
+# 2.28, macOS 11.2, Windows 10). On macOS arm64, SciPy 1.17 and llvmlite 0.50 have wheels for
+# macOS 12 and later only, so that zip needs macOS 12. The registry has no numba/llvmlite wheels
+# for macos-x64 and windows-arm64: no zip is built for them.
+PLATFORMS = {
+    "linux-x64": ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_24_x86_64",
+                  "manylinux_2_17_x86_64", "manylinux2014_x86_64"),
+    "macos-arm64": ("macosx_12_0_arm64", "macosx_11_0_arm64"),
+    "macos-x64": ("macosx_10_15_x86_64",),
+    "windows-x64": ("win_amd64",),
+    "windows-arm64": ("win_arm64",),
+}
 
 
 class BuildError(Exception):
@@ -105,19 +146,83 @@ def strip_wheel(wheel: Path, prefixes) -> list[str]:
     return dropped
 
 
-def stage(stage_dir: Path = STAGE) -> dict:
-    """Fill ``stage_dir`` with the manifest, the add-on's files and its wheels; return the manifest."""
+def _canon(name: str) -> str:
+    return re.sub(r"[-_.]+", "_", name).lower()
+
+
+def _cached(folder: Path, pin: str) -> Path | None:
+    """The wheel for ``name==version`` in ``folder``, if there."""
+    name, version = pin.split("==")
+    for w in sorted(folder.glob("*.whl")):
+        parts = w.name.split("-")
+        if _canon(parts[0]) == _canon(name) and parts[1] == version:
+            return w
+    return None
+
+
+def download_wheels(platform: str, cache: Path = WHEEL_CACHE) -> list[Path]:
+    """The :data:`BUNDLED` wheels for a Blender platform, from ``cache/<platform>/`` or downloaded
+    there from the package registry (``pip download --no-deps --only-binary=:all:``)."""
+    if platform not in PLATFORMS:
+        raise BuildError(f"unknown platform {platform!r}; Blender's are {', '.join(PLATFORMS)}")
+    folder = cache / platform
+    folder.mkdir(parents=True, exist_ok=True)
+    missing = [pin for pin in BUNDLED if _cached(folder, pin) is None]
+    if missing:
+        cmd = [sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
+               "--python-version", "3.11", "--implementation", "cp", "--abi", "cp311", "--abi", "abi3",
+               "--abi", "none", "--dest", str(folder)]
+        for tag in PLATFORMS[platform]:
+            cmd += ["--platform", tag]
+        run = subprocess.run(cmd + missing, capture_output=True, text=True)
+        if run.returncode != 0:
+            lines = [ln for ln in (run.stdout + run.stderr).splitlines() if ln.startswith("ERROR")]
+            raise BuildError(f"no wheels for {platform} on the registry: " + " ".join(lines[:2]))
+    wheels = []
+    for pin in BUNDLED:
+        w = _cached(folder, pin)
+        if w is None:
+            raise BuildError(f"pip download did not fetch {pin} for {platform}")
+        wheels.append(w)
+    if any(w.name.lower().startswith("numpy-") for w in wheels):
+        raise BuildError("numpy must never be bundled: Blender ships its own")
+    return wheels
+
+
+def _set_manifest_list(text: str, key: str, items: list[str]) -> str:
+    """``text`` (a manifest) with the top-level ``key = [...]`` replaced by ``items`` (or added)."""
+    block = key + " = [\n" + "".join(f'  "{item}",\n' for item in items) + "]"
+    pattern = re.compile(rf"^{key}\s*=\s*\[.*?\]", re.DOTALL | re.MULTILINE)
+    if pattern.search(text):
+        return pattern.sub(lambda m: block, text, count=1)
+    first_table = re.search(r"^\[", text, re.MULTILINE)
+    at = first_table.start() if first_table else len(text)
+    return text[:at] + block + "\n\n" + text[at:]
+
+
+def stage(stage_dir: Path = STAGE, platforms: tuple[str, ...] = ()) -> dict:
+    """Fill ``stage_dir`` with the manifest, the add-on's files and its wheels (the ``nkf_model``
+    wheel, and :data:`BUNDLED` for each of ``platforms``); return the staged manifest."""
     manifest_path = ROOT / MANIFEST
-    with open(manifest_path, "rb") as fh:
-        manifest = tomllib.load(fh)
     if stage_dir.exists():
         shutil.rmtree(stage_dir)
     stage_dir.mkdir(parents=True)
-    shutil.copy2(manifest_path, stage_dir / MANIFEST)
     shutil.copytree(
         ADDON_DIR, stage_dir, dirs_exist_ok=True, ignore=shutil.ignore_patterns("__pycache__", "*.pyc")
     )
     built = build_wheel(stage_dir / "wheels")
+    text = manifest_path.read_text()
+    if platforms:
+        listed = list(tomllib.loads(text).get("wheels", []))
+        for platform in platforms:
+            for w in download_wheels(platform):
+                if f"./wheels/{w.name}" not in listed:  # pure-Python wheels serve every platform
+                    shutil.copy2(w, stage_dir / "wheels" / w.name)
+                    listed.append(f"./wheels/{w.name}")
+        text = _set_manifest_list(text, "wheels", listed)
+        text = _set_manifest_list(text, "platforms", list(platforms))
+    (stage_dir / MANIFEST).write_text(text)
+    manifest = tomllib.loads(text)
     listed = {Path(w).name for w in manifest.get("wheels", [])}
     present = {p.name for p in (stage_dir / "wheels").glob("*.whl")}
     if listed != present:
@@ -130,6 +235,18 @@ def stage(stage_dir: Path = STAGE) -> dict:
     return manifest
 
 
+def available_platforms(requested) -> tuple[tuple[str, ...], dict[str, str]]:
+    """``(platforms whose wheels could be had, {platform: why not})`` for ``requested``."""
+    ok, skipped = [], {}
+    for platform in requested:
+        try:
+            download_wheels(platform)
+            ok.append(platform)
+        except BuildError as exc:
+            skipped[platform] = str(exc)
+    return tuple(ok), skipped
+
+
 def blender_ext(tool: Path, *args: str) -> None:
     run = subprocess.run([sys.executable, str(tool), *args], capture_output=True, text=True)
     out = (run.stdout + run.stderr).strip()
@@ -139,19 +256,24 @@ def blender_ext(tool: Path, *args: str) -> None:
         print(out)
 
 
-def build(output_dir: Path, tool: Path | None = None, stage_dir: Path = STAGE) -> Path:
-    """Stage, validate and build; return the path of the zip."""
+def build(output_dir: Path, tool: Path | None = None, stage_dir: Path = STAGE,
+          platforms: tuple[str, ...] = ()) -> list[Path]:
+    """Stage, validate and build; return the zips (one per platform, or one without ``platforms``)."""
     tool = tool or find_blender_ext()
-    manifest = stage(stage_dir)
+    manifest = stage(stage_dir, platforms)
     blender_ext(tool, "validate", str(stage_dir))
     output_dir.mkdir(parents=True, exist_ok=True)
-    zip_path = output_dir / f"{manifest['id']}-{manifest['version']}.zip"
-    if zip_path.exists():
-        zip_path.unlink()
-    blender_ext(tool, "build", "--source-dir", str(stage_dir), "--output-filepath", str(zip_path))
-    if not zip_path.is_file():
-        raise BuildError(f"blender_ext.py build reported success but {zip_path} does not exist")
-    return zip_path
+    base = output_dir / f"{manifest['id']}-{manifest['version']}.zip"
+    want = [base.with_name(f"{base.stem}-{p.replace('-', '_')}.zip") for p in platforms] or [base]
+    for z in want:
+        if z.exists():
+            z.unlink()
+    args = ["build", "--source-dir", str(stage_dir), "--output-filepath", str(base)]
+    blender_ext(tool, *args, *(["--split-platforms"] if platforms else []))
+    for z in want:
+        if not z.is_file():
+            raise BuildError(f"blender_ext.py build reported success but {z} does not exist")
+    return want
 
 
 def main(argv=None) -> int:
@@ -162,14 +284,32 @@ def main(argv=None) -> int:
                     help="staging folder (default build/extension/)")
     ap.add_argument("--blender-ext", type=Path, default=None,
                     help="path of blender_ext.py (default: found inside the bpy wheel)")
+    ap.add_argument("--platforms", default="all",
+                    help="comma-separated Blender platforms to build a self-contained zip for "
+                         f"({', '.join(PLATFORMS)}); 'all' (default): each one whose wheels the registry serves")
+    ap.add_argument("--no-bundle", action="store_true",
+                    help="bundle only the nkf_model wheel (one zip; SciPy, scikit-image and numba must "
+                         "already be importable in Blender)")
     args = ap.parse_args(argv)
     try:
-        zip_path = build(args.output_dir.resolve(), args.blender_ext, args.stage_dir.resolve())
+        platforms: tuple[str, ...] = ()
+        if not args.no_bundle:
+            if args.platforms == "all":
+                platforms, skipped = available_platforms(PLATFORMS)
+                for platform, why in skipped.items():
+                    print(f"build_extension: skipped {platform}: {why}", file=sys.stderr)
+                if not platforms:
+                    raise BuildError("no platform's wheels could be downloaded")
+            else:
+                platforms = tuple(p.strip() for p in args.platforms.split(",") if p.strip())
+        zips = build(args.output_dir.resolve(), args.blender_ext, args.stage_dir.resolve(), platforms)
     except BuildError as exc:
         print(f"build_extension: {exc}", file=sys.stderr)
         return 1
-    print(f"built {zip_path} ({os.path.getsize(zip_path) / 1024:.0f} KiB)")
-    print(zip_path)
+    for z in zips:
+        print(f"built {z} ({os.path.getsize(z) / 1024:.0f} KiB)")
+    for z in zips:
+        print(z)
     return 0
 
 

@@ -43,7 +43,8 @@ def extension_zip(tmp_path_factory) -> Path:
     stage = tmp_path_factory.mktemp("stage") / "extension"
     run = subprocess.run(
         [sys.executable, str(ROOT / "scripts" / "build_extension.py"), "--output-dir", str(out),
-         "--stage-dir", str(stage)],
+         "--stage-dir", str(stage), "--no-bundle"],  # this venv has the dependencies; tests/blender_env
+        # installs the self-contained zip in a Python that has only bpy
         capture_output=True, text=True, cwd=ROOT,
     )
     assert run.returncode == 0, run.stdout + run.stderr
