@@ -361,3 +361,18 @@ def test_unknown_extension(tmp_path):
     msg = fails(tmp_path / "a.obj", "unsupported point-cloud format '.obj'")
     for ext in (".las", ".laz", ".e57", ".xyz", ".pts", ".pcd", ".ply"):
         assert ext in msg
+
+
+@pytest.mark.parametrize("kind", ["ascii", "binary", "binary_compressed"])
+def test_pcd_read_in_chunks_gives_the_same(tmp_path, kind):
+    from nkf_model.io.pcd import read_pcd
+
+    p, n = sphere(500, seed=21)
+    p[7] = np.nan
+    fields = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "normal_x": n[:, 0], "normal_y": n[:, 1], "normal_z": n[:, 2]}
+    path = tmp_path / "k.pcd"
+    path.write_bytes(pcd_bytes(fields, kind))
+    whole, chunked = read_pcd(path), read_pcd(path, chunk_size=37)
+    assert len(chunked.points) == 499 and chunked.skipped == 1
+    np.testing.assert_array_equal(whole.points, chunked.points)
+    np.testing.assert_array_equal(whole.normals, chunked.normals)

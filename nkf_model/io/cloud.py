@@ -204,6 +204,9 @@ class Gatherer:
                 joined = value[0] if len(value) == 1 else np.concatenate(value)
                 value.clear()
                 out[name] = joined
+            elif self.n < 0.9 * len(value):  # an upper bound far above the rows kept: free the rest
+                out[name] = value[: self.n].copy()
+                self._cols[name] = None
             else:
                 out[name] = value[: self.n]
         pts = out["points"]

@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import PointCloudFileError
 from .cloud import Gatherer, PointCloud, colors_to_uint8, require
 
-CHUNK = 1_000_000
+CHUNK = 262_144
 CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
 SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 COLORS = ("colorRed", "colorGreen", "colorBlue")

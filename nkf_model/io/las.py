@@ -20,7 +20,7 @@ from ..errors import PointCloudFileError
 from .cloud import Gatherer, PointCloud, color_scale, colors_to_uint8, require
 from .ply import NORMAL_NAMES
 
-CHUNK = 1_000_000
+CHUNK = 262_144
 COLOR_FORMATS = (2, 3, 5, 7, 8, 10)
 
 

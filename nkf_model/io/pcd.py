@@ -18,13 +18,13 @@ import numpy as np
 from ..errors import PointCloudFileError
 from .cloud import Gatherer, PointCloud, colors_to_uint8
 
-CHUNK = 1_000_000
+CHUNK = 262_144
 TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4", ("I", 8): "<i8",
          ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4", ("U", 8): "<u8"}
 NORMALS = (("normal_x", "normal_y", "normal_z"), ("nx", "ny", "nz"))
 
 
-def lzf_decompress(data: bytes, size: int) -> bytes:
+def lzf_decompress(data: bytes, size: int) -> bytearray:
     """Decompress an LZF block (liblzf's format, as PCL writes it) of ``size`` bytes.
 
     Raises ``ValueError`` on a corrupt or short block."""
@@ -64,7 +64,7 @@ def lzf_decompress(data: bytes, size: int) -> bytes:
             op += length
     if op != size:
         raise ValueError(f"decompressed {op} bytes, expected {size}")
-    return bytes(out)
+    return out
 
 
 def _header(fh, path):
@@ -217,7 +217,7 @@ def read_pcd(path, *, classes=None, progress=None, chunk_size: int = CHUNK) -> P
                     progress(min(1.0, (s + chunk_size) / n))
             del mm
         elif kind == "binary_compressed":
-            _read_compressed(fh, p, dtype, n, g)
+            _read_compressed(fh, p, dtype, n, g, progress, chunk_size)
         else:
             raise PointCloudFileError(
                 f"{p}: unsupported PCD DATA kind '{kind}' (ascii, binary and binary_compressed are read)"
@@ -276,7 +276,7 @@ def _read_ascii(fh, p, dtype, n, g, progress, chunk_size, lineno):
         raise PointCloudFileError(f"{p}: truncated: its header says {n:,} points, the file holds {got:,}")
 
 
-def _read_compressed(fh, p, dtype, n, g):
+def _read_compressed(fh, p, dtype, n, g, progress, chunk_size):
     head = fh.read(8)
     if len(head) < 8:
         raise PointCloudFileError(f"{p}: truncated: the compressed block's sizes are missing")
@@ -289,17 +289,21 @@ def _read_compressed(fh, p, dtype, n, g):
     if len(data) < csize:
         raise PointCloudFileError(f"{p}: truncated: the compressed block holds {len(data):,} of {csize:,} bytes")
     try:
-        raw = lzf_decompress(data, usize) if usize else b""
+        raw = lzf_decompress(data, usize) if usize else bytearray()
     except ValueError as exc:
         raise PointCloudFileError(f"{p}: corrupt compressed data ({exc})") from None
-    rec = np.empty(n, dtype=dtype)
-    pos = 0
-    for name in dtype.names:  # column-major: each field's values for all points, one after another
+    del data
+    # Column-major: each field's values for all points, one field after another. Views, no copies.
+    columns, pos = {}, 0
+    for name in dtype.names:
         ft = dtype[name]
-        nbytes = n * ft.itemsize
-        rec[name] = np.frombuffer(raw, dtype=ft.base, count=n * max(1, int(np.prod(ft.shape))), offset=pos).reshape(
-            rec[name].shape
-        )
-        pos += nbytes
-    del raw
-    _add(g, rec)
+        width = max(1, int(np.prod(ft.shape)))
+        columns[name] = np.frombuffer(raw, dtype=ft.base, count=n * width, offset=pos).reshape((n,) + ft.shape)
+        pos += n * ft.itemsize
+    for s in range(0, n, chunk_size):
+        rec = np.empty(min(chunk_size, n - s), dtype=dtype)
+        for name, col in columns.items():
+            rec[name] = col[s : s + len(rec)]
+        _add(g, rec)
+        if progress is not None:
+            progress(min(1.0, (s + chunk_size) / n))

@@ -25,7 +25,7 @@ NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"), ("norm
 COLOR_NAMES = (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
 INTENSITY_NAMES = ("intensity", "reflectance")
 CLASS_NAMES = ("classification", "class", "label")
-CHUNK = 1_000_000
+CHUNK = 262_144
 
 
 def open_ply(path):

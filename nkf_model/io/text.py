@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import PointCloudFileError
 from .cloud import Gatherer, PointCloud, color_scale, colors_to_uint8
 
-CHUNK = 500_000
+CHUNK = 50_000
 MAX_HEADER_LINES = 64
 
 ALIASES = {
@@ -150,6 +150,17 @@ def _bad_line(lines, first_lineno: int, sep, ncols: int, path) -> PointCloudFile
     return PointCloudFileError(f"{path}: cannot parse the lines from {first_lineno} on")
 
 
+def _count_lines(path) -> int:
+    """Lines in the file (an upper bound on its rows), counted in binary blocks: the arrays are
+    then allocated once, and the peak memory stays near the arrays kept."""
+    count, last = 0, b"\n"
+    with open(path, "rb") as fh:
+        while block := fh.read(1 << 24):
+            count += block.count(b"\n")
+            last = block[-1:]
+    return count + (last != b"\n")
+
+
 def read_text(path, *, columns=None, classes=None, progress=None, chunk_lines: int = CHUNK) -> PointCloud:
     """Read an XYZ/PTS/TXT/CSV point cloud.
 
@@ -235,7 +246,7 @@ def _read(fh, p, size, columns, classes, progress, chunk_lines) -> PointCloud:
             f"{p}: {'--columns' if columns is not None else 'the header line'} names {len(roles)} columns, "
             f"line {first_lineno} has {ncols}"
         )
-    g = Gatherer(p, classes=classes)
+    g = Gatherer(p, expected=_count_lines(p), classes=classes)
     scale = None
     read_bytes = 0
     for start, lines in chunks():
