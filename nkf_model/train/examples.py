@@ -122,6 +122,12 @@ class AugmentSpec:
     p_rotate: float = 0.5  # otherwise one of the 48 axis permutations and flips
     scale_min: float = 0.75
     scale_max: float = 1.25
+    # Partial surfaces (not with half): drop the input points within 1..partial_holes balls centred
+    # on surface points, of radius partial_radius_min..max (mesh units), as a scan misses patches.
+    p_partial: float = 0.0
+    partial_holes: int = 3
+    partial_radius_min: float = 0.08
+    partial_radius_max: float = 0.3
     n_volume: int = 1024
     n_near: int = 1024
     n_surface: int = 512
@@ -181,13 +187,26 @@ def half_space_mask(points: np.ndarray, direction: np.ndarray) -> np.ndarray:
     return points @ direction > 0.0
 
 
-def sample_input(samples: dict, n: int, noise: float, rng, half_direction=None):
-    """Input points and normals from the cached surface samples (mesh frame, float64)."""
+def partial_mask(points: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Points (N, 3) outside every ball (centres (K, 3), radii (K,))."""
+    d = np.linalg.norm(points[:, None, :] - centres[None, :, :], axis=2)
+    return np.all(d > radii[None, :], axis=1)
+
+
+def sample_input(samples: dict, n: int, noise: float, rng, half_direction=None, holes=None):
+    """Input points and normals from the cached surface samples (mesh frame, float64).
+
+    ``holes``: optional (centres (K, 3), radii (K,)); surface samples inside those balls are never drawn.
+    """
     sp = samples["surf_pts"].astype(np.float64)
     sn = samples["surf_nrm"].astype(np.float64)
     idx = np.arange(len(sp))
     if half_direction is not None:
         idx = idx[half_space_mask(sp, half_direction)]
+    if holes is not None:
+        kept = idx[partial_mask(sp[idx], *holes)]
+        if len(kept) >= min(n, len(idx)) // 2:  # never leave less than half of what was asked for
+            idx = kept
     pick = rng.choice(idx, size=min(n, len(idx)), replace=False)
     pts, nrm = sp[pick], sn[pick]
     if noise > 0:
@@ -204,7 +223,13 @@ def make_example(samples: dict, rng: np.random.Generator, spec: AugmentSpec = Au
     if half:
         direction = rng.normal(size=3)
         direction /= np.linalg.norm(direction)
-    pts, nrm = sample_input(samples, n, noise, rng, direction)
+    holes = None
+    if spec.p_partial > 0 and not half and rng.random() < spec.p_partial:
+        sp = samples["surf_pts"]
+        k = int(rng.integers(1, spec.partial_holes + 1))
+        holes = (sp[rng.integers(len(sp), size=k)].astype(np.float64),
+                 rng.uniform(spec.partial_radius_min, spec.partial_radius_max, size=k))
+    pts, nrm = sample_input(samples, n, noise, rng, direction, holes)
 
     rot = _random_rotation(rng) if rng.random() < spec.p_rotate else np.eye(3)
     A = np.diag(rng.uniform(spec.scale_min, spec.scale_max, size=3)) @ _signed_permutation(rng) @ rot

@@ -43,6 +43,7 @@ import numpy as np
 from ..fit.augment import augment, default_eps
 from ..kernel.feature_net import FeatureConfig
 from .examples import AugmentSpec, CacheSpec, Example
+from .procedural import ProceduralSpec
 
 DEFAULT_CONFIG = Path("configs/nkf.toml")
 
@@ -58,10 +59,21 @@ class FitSpec:
 
 @dataclass
 class DataSpec:
+    """Which meshes train and which validate.
+
+    ``split = "train"``: the corpus ``train`` split, ``holdout`` of its meshes (by a hash of the
+    name) kept for validation. ``split = "sources"``: :func:`corpus.source_split`: whole sources held
+    out by kind (organic, mechanical, furniture, architecture); validation uses ``val_per_kind`` of
+    each kind's meshes and reports each kind. ``p_procedural``: the share of examples made from
+    procedural shapes (:mod:`nkf_model.train.procedural`) instead of corpus meshes.
+    """
+
     split: str = "train"
     holdout: int = 24
     cache: str = ".train-cache"
     limit: int = 0  # use only this many training meshes (0: all); for tests and smoke runs
+    val_per_kind: int = 6
+    p_procedural: float = 0.0
 
 
 @dataclass
@@ -77,7 +89,9 @@ class TrainSpec:
     const_lr_scale: float = 20.0  # learning-rate multiplier of the constant feature's log(c^2)
     val_every: int = 500
     checkpoint_every: int = 250
+    checkpoint_minutes: float = 0.0  # also checkpoint after this much wall time since the last one; 0: never
     threads: int = 2
+    workers: int = 0  # 0: examples are made in the training process; 1: in one worker process ahead of it
     device: str = "auto"
 
 
@@ -89,6 +103,7 @@ class TrainConfig:
     augment: AugmentSpec = field(default_factory=AugmentSpec)
     cache: CacheSpec = field(default_factory=CacheSpec)
     train: TrainSpec = field(default_factory=TrainSpec)
+    procedural: ProceduralSpec = field(default_factory=ProceduralSpec)
     validation: list = field(
         default_factory=lambda: [
             {"points": 1000, "noise": 0.0, "half": False},
@@ -106,6 +121,7 @@ class TrainConfig:
             "augment": asdict(self.augment),
             "cache": asdict(self.cache),
             "train": asdict(self.train),
+            "procedural": asdict(self.procedural),
             "validation": list(self.validation),
         }
 
@@ -122,7 +138,7 @@ def load_config(path) -> TrainConfig:
     """Read a TOML training config; unknown sections or keys are errors."""
     with open(path, "rb") as fh:
         raw = tomllib.load(fh)
-    known = {"model", "fit", "data", "augment", "cache", "train", "validation"}
+    known = {"model", "fit", "data", "augment", "cache", "train", "procedural", "validation"}
     unknown = set(raw) - known
     if unknown:
         raise ValueError(f"{path}: unknown sections {', '.join(sorted(unknown))}")
@@ -133,7 +149,14 @@ def load_config(path) -> TrainConfig:
         augment=_section(AugmentSpec, raw.get("augment", {}), "augment"),
         cache=_section(CacheSpec, raw.get("cache", {}), "cache"),
         train=_section(TrainSpec, raw.get("train", {}), "train"),
+        procedural=_section(ProceduralSpec, raw.get("procedural", {}), "procedural"),
     )
+    if isinstance(cfg.procedural.weights, list):
+        cfg.procedural = ProceduralSpec(**{**asdict(cfg.procedural), "weights": tuple(cfg.procedural.weights)})
+    if cfg.data.split not in ("train", "sources"):
+        raise ValueError(f"[data] split must be 'train' or 'sources', not {cfg.data.split!r}")
+    if cfg.train.workers not in (0, 1):
+        raise ValueError("[train] workers must be 0 or 1")
     if "validation" in raw:
         cfg.validation = list(raw["validation"])
     return cfg
@@ -242,14 +265,27 @@ class Trainer:
         self.step = 0
         self.best = -1.0
         self.elapsed = 0.0  # seconds of training over all sessions of this run
+        self.cpu = 0.0  # CPU seconds of training (this process and the data worker) over all sessions
+        self.worker = None
 
-        entries = [e for e in corpus.manifest() if e.split == cfg.data.split]
-        entries.sort(key=lambda e: corpus.stable_seed("holdout", e.name))
-        self.holdout_entries = entries[: cfg.data.holdout]
-        self.train_entries = sorted(entries[cfg.data.holdout :], key=lambda e: e.name)
+        # holdout_kinds[i]: the held-out kind of holdout_entries[i] (None with split = "train")
+        if cfg.data.split == "sources":
+            self.train_entries, held = corpus.source_split()
+            sub = corpus.validation_subset(held, cfg.data.val_per_kind)
+            self.holdout_entries = [e for k in sub for e in sub[k]]
+            self.holdout_kinds = [k for k in sub for _ in sub[k]]
+        else:
+            entries = [e for e in corpus.manifest() if e.split == cfg.data.split]
+            entries.sort(key=lambda e: corpus.stable_seed("holdout", e.name))
+            self.holdout_entries = entries[: cfg.data.holdout]
+            self.holdout_kinds = [None] * len(self.holdout_entries)
+            self.train_entries = sorted(entries[cfg.data.holdout :], key=lambda e: e.name)
         if cfg.data.limit:
             self.train_entries = self.train_entries[: cfg.data.limit]
-            self.holdout_entries = self.holdout_entries[: max(1, min(cfg.data.holdout, cfg.data.limit))]
+            keep = max(1, min(len(self.holdout_entries), cfg.data.holdout if cfg.data.split == "train" else 4,
+                              cfg.data.limit))
+            self.holdout_entries = self.holdout_entries[:keep]
+            self.holdout_kinds = self.holdout_kinds[:keep]
 
     # -- logging -------------------------------------------------------------------------
     def log(self, msg: str) -> None:
@@ -261,7 +297,7 @@ class Trainer:
 
     def _csv(self, row: dict) -> None:
         path = self.out / "metrics.csv"
-        cols = ["kind", "step", "elapsed_s", "loss", "bce", "surface", "lr", "skipped", "config", "iou_nkf",
+        cols = ["kind", "step", "elapsed_s", "cpu_s", "loss", "bce", "surface", "lr", "skipped", "config", "iou_nkf",
                 "iou_splines"]
         new = not path.exists()
         with open(path, "a", newline="") as fh:
@@ -272,24 +308,42 @@ class Trainer:
 
     # -- data ----------------------------------------------------------------------------
     def load_data(self) -> None:
-        from .examples import build_cache
+        """Held-out samples and validation inputs; the training data source (see :mod:`data_worker`).
+
+        On the CPU, training meshes' samples are made when first drawn (by the data worker with
+        ``workers = 1``); on a GPU they are all made up front, where winding numbers are fast.
+        """
+        from . import corpus
+        from .data_worker import DataSource, source_kwargs
+        from .examples import build_cache, validation_example
 
         cache = Path(self.cfg.data.cache)
-        self.log(f"cache: {cache} ({len(self.train_entries)} training meshes, {len(self.holdout_entries)} held out)")
+        self.log(f"cache: {cache} ({len(self.train_entries)} training meshes, {len(self.holdout_entries)} held out"
+                 + (f", procedural shapes {self.cfg.data.p_procedural:.0%} of examples" if self.cfg.data.p_procedural
+                    else "") + ")")
         wn_device = self.device if self.device != "cpu" else None
-        self.train_samples = build_cache(self.train_entries, cache, self.cfg.cache, progress=self.progress,
-                                         device=wn_device)
+        if wn_device is not None:
+            build_cache(self.train_entries, cache, self.cfg.cache, progress=self.progress, device=wn_device)
         self.holdout_samples = build_cache(self.holdout_entries, cache, self.cfg.cache, progress=self.progress,
                                            device=wn_device)
-        from . import corpus
-        from .examples import validation_example
+        self.source = None if self.cfg.train.workers else DataSource(**source_kwargs(self.train_entries, self.cfg))
 
         self.val_examples = []
-        for e, s in zip(self.holdout_entries, self.holdout_samples):
+        for e, kind, s in zip(self.holdout_entries, self.holdout_kinds, self.holdout_samples):
             for vc in self.cfg.validation:
                 seed = corpus.stable_seed("holdout-val", e.name, vc["points"], vc["noise"], vc["half"])
                 ex = validation_example(s, int(vc["points"]), float(vc["noise"]), bool(vc["half"]), seed)
-                self.val_examples.append((self._vc_name(vc), ex))
+                name = self._vc_name(vc)
+                self.val_examples.append((f"{kind}/{name}" if kind else name, ex))
+
+    def next_batch(self) -> list:
+        """The examples of the current step (from the worker, or made here)."""
+        if self.worker is not None:
+            return self.worker.get(self.step)
+        return self.source.batch_at(self.step)
+
+    def worker_cpu(self) -> float:
+        return self.worker.cpu_seconds if self.worker is not None else 0.0
 
     @staticmethod
     def _vc_name(vc) -> str:
@@ -308,6 +362,7 @@ class Trainer:
             "step": self.step,
             "best": self.best,
             "elapsed": self.elapsed,
+            "cpu": self.cpu,
             "config": json.dumps(self.cfg.to_dict(), sort_keys=True),
         }
         tmp = self.checkpoint_path().with_suffix(".tmp")
@@ -330,6 +385,7 @@ class Trainer:
         self.step = int(state["step"])
         self.best = float(state["best"])
         self.elapsed = float(state["elapsed"])
+        self.cpu = float(state.get("cpu", 0.0))
         return True
 
     # -- schedule ------------------------------------------------------------------------
@@ -350,13 +406,13 @@ class Trainer:
         return t.lr * (lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * min(1.0, p))))
 
     # -- one step ------------------------------------------------------------------------
-    def train_step(self) -> dict:
+    def train_step(self, examples: list | None = None) -> dict:
+        """One optimisation step on ``examples`` (default: this step's batch)."""
         import torch
 
         from .differentiable_fit import IllConditionedError
-        from .examples import make_example
 
-        rng = np.random.default_rng([self.cfg.train.seed, self.step])
+        examples = self.next_batch() if examples is None else examples
         lr = self.lr_at(self.step)
         for gparam in self.opt.param_groups:
             gparam["lr"] = lr * gparam.get("scale", 1.0)
@@ -366,8 +422,7 @@ class Trainer:
         parts = {"loss": 0.0, "bce": 0.0, "surface": 0.0}
         used = 0
         skipped = 0
-        for _ in range(b):
-            ex = make_example(self.train_samples[int(rng.integers(len(self.train_samples)))], rng, self.cfg.augment)
+        for ex in examples:
             try:
                 loss, p = example_loss(self.net, ex, self.cfg.fit, device=self.device)
                 if not torch.isfinite(loss):
@@ -410,12 +465,53 @@ class Trainer:
         return {k: float(np.mean(v)) for k, v in per.items()}
 
     # -- the loop ------------------------------------------------------------------------
-    def run(self, resume: bool = False, max_steps: int | None = None, stop_after_s: float | None = None) -> dict:
+    def commit(self) -> bool:
+        """Commit the run folder (only its paths) to the git repository that holds it.
+
+        For runs that must survive the end of a session: ``git add`` then ``git commit -- OUT``, which
+        commits nothing else that is staged. Waits up to a minute while another git command holds the
+        index lock; a failure is logged, never raised (the next checkpoint tries again).
+        """
+        import subprocess
+
+        out = self.out.resolve()
+        try:
+            top = subprocess.run(["git", "rev-parse", "--show-toplevel"], cwd=out, capture_output=True, text=True,
+                                 check=True).stdout.strip()
+        except (OSError, subprocess.CalledProcessError) as exc:
+            self.log(f"commit: {out} is not in a git repository ({exc})")
+            return False
+        rel = os.path.relpath(out, top)
+        msg = (f"Training run {rel}: step {self.step}, {self.cpu / 3600:.2f} CPU hours, best held-out mean IoU "
+               f"{self.best:.4f} (checkpoint, log, curves)")
+        for _ in range(12):
+            if (Path(top) / ".git" / "index.lock").exists():
+                time.sleep(5)
+                continue
+            a = subprocess.run(["git", "add", "--", rel], cwd=top, capture_output=True, text=True)
+            c = subprocess.run(["git", "commit", "-q", "-m", msg, "--", rel], cwd=top, capture_output=True, text=True)
+            if a.returncode == 0 and c.returncode == 0:
+                self.log(f"commit: step {self.step} committed ({rel})")
+                return True
+            err = (a.stderr + c.stderr + c.stdout).strip()
+            if "index.lock" not in err:
+                self.log(f"commit failed: {err[:300]}")
+                return False
+            time.sleep(5)
+        self.log("commit: the git index stayed locked; trying again at the next checkpoint")
+        return False
+
+    def run(self, resume: bool = False, max_steps: int | None = None, stop_after_s: float | None = None,
+            commit_every_s: float | None = None) -> dict:
         """Train until the config's steps or budget, ``max_steps`` more steps, or ``stop_after_s``
-        seconds of this session (then validate and checkpoint, so that ``resume=True`` continues)."""
+        seconds of this session (then validate and checkpoint, so that ``resume=True`` continues).
+
+        ``commit_every_s``: also commit the run folder (:meth:`commit`) after the first checkpoint
+        that comes this many seconds of wall time after the last commit, and at the end."""
         from tqdm import tqdm
 
         from ..kernel.weights import save_weights
+        from .data_worker import BatchWorker, source_kwargs
 
         t = self.cfg.train
         resumed = resume and self.load_checkpoint()
@@ -427,6 +523,8 @@ class Trainer:
         if not resumed:
             self.log("config " + json.dumps(self.cfg.to_dict(), sort_keys=True))
         self.load_data()
+        if t.workers:
+            self.worker = BatchWorker(source_kwargs(self.train_entries, self.cfg), start=self.step)
         base_path = self.out / "baseline.json"
         if base_path.exists():
             baseline = json.loads(base_path.read_text())
@@ -436,6 +534,7 @@ class Trainer:
             for k, v in baseline.items():
                 self._csv({"kind": "val", "step": 0, "config": k, "iou_splines": v})
         self.log("neural splines on the held-out meshes: " + ", ".join(f"{k} {v:.4f}" for k, v in baseline.items()))
+        self.log(f"run so far: step {self.step}, {self.elapsed / 60:.1f} min wall, {self.cpu / 3600:.3f} CPU hours")
         end = t.steps if max_steps is None else min(t.steps, self.step + max_steps)
         t_wall = time.perf_counter()
         deadline = None if stop_after_s is None else t_wall + stop_after_s
@@ -443,6 +542,16 @@ class Trainer:
                    dynamic_ncols=True)
         window: list = []
         last_val = None
+        c_main = time.process_time()
+        c_work = self.worker_cpu()
+        last_ckpt = last_commit = time.perf_counter()
+
+        def account():
+            nonlocal c_main, c_work
+            cm, cw = time.process_time(), self.worker_cpu()
+            self.cpu += (cm - c_main) + (cw - c_work)
+            c_main, c_work = cm, cw
+
         try:
             while self.step < end and self.progress_fraction() < 1.0 and not (
                     deadline is not None and time.perf_counter() >= deadline):
@@ -450,51 +559,77 @@ class Trainer:
                 now = time.perf_counter()
                 self.elapsed += now - t_wall  # wall time, validation and checkpoints included
                 t_wall = now
+                account()
                 self.step += 1
                 out_of_time = deadline is not None and now >= deadline
                 last = self.step >= end or self.progress_fraction() >= 1.0 or out_of_time
                 window.append(r["loss"])
                 window = window[-50:]
                 self._csv({"kind": "train", "step": self.step, "elapsed_s": f"{self.elapsed:.1f}",
-                           "loss": f"{r['loss']:.5f}", "bce": f"{r['bce']:.5f}", "surface": f"{r['surface']:.5f}",
+                           "cpu_s": f"{self.cpu:.1f}", "loss": f"{r['loss']:.5f}", "bce": f"{r['bce']:.5f}",
+                           "surface": f"{r['surface']:.5f}",
                            "lr": f"{r['lr']:.3g}", "skipped": r["skipped"]})
                 bar.update(1)
                 bar.set_postfix(loss=f"{np.mean(window):.4f}", val=last_val or "-")
                 if self.step % 50 == 0:
                     self.log(f"step {self.step}: loss {np.mean(window):.4f} (mean of last {len(window)}), "
                              f"lr {r['lr']:.3g}, constant feature {self.net.constant_feature():.3f}, "
-                             f"{self.elapsed / 60:.1f} min")
+                             f"{self.elapsed / 60:.1f} min, {self.cpu / 3600:.3f} CPU h")
                 if self.step % t.val_every == 0 or last:
                     tv = time.perf_counter()
                     val = self.validate()
                     mean = float(np.mean(list(val.values())))
                     for k, v in val.items():
                         self._csv({"kind": "val", "step": self.step, "elapsed_s": f"{self.elapsed:.1f}",
-                                   "config": k, "iou_nkf": f"{v:.5f}", "iou_splines": f"{baseline[k]:.5f}"})
+                                   "cpu_s": f"{self.cpu:.1f}", "config": k, "iou_nkf": f"{v:.5f}",
+                                   "iou_splines": f"{baseline[k]:.5f}"})
                     self.log(f"step {self.step}: validation IoU " + ", ".join(
                         f"{k} {v:.4f} (splines {baseline[k]:.4f})" for k, v in val.items())
                         + f"; mean {mean:.4f} vs {np.mean(list(baseline.values())):.4f} "
                         f"[{time.perf_counter() - tv:.0f} s]")
+                    kinds = sorted({k.split("/")[0] for k in val if "/" in k})
+                    if kinds:
+                        self.log(f"step {self.step}: held-out mean IoU by kind: " + ", ".join(
+                            f"{kd} {np.mean([v for k, v in val.items() if k.startswith(kd + '/')]):.4f} (splines "
+                            f"{np.mean([v for k, v in baseline.items() if k.startswith(kd + '/')]):.4f})"
+                            for kd in kinds))
                     last_val = f"{mean:.4f}"
                     if mean > self.best:
                         self.best = mean
                         save_weights(self.out / "nkf.safetensors", self.net, lam=self.cfg.fit.lam,
                                      training=self.summary(val, baseline))
                         self.log(f"step {self.step}: best so far, wrote {self.out / 'nkf.safetensors'}")
-                if self.step % t.checkpoint_every == 0 or last:
+                timed = t.checkpoint_minutes > 0 and time.perf_counter() - last_ckpt >= 60.0 * t.checkpoint_minutes
+                if self.step % t.checkpoint_every == 0 or last or timed:
+                    now = time.perf_counter()
+                    self.elapsed += now - t_wall
+                    t_wall = now
+                    account()
                     self.save_checkpoint()
+                    last_ckpt = time.perf_counter()
+                    if commit_every_s is not None and (last or last_ckpt - last_commit >= commit_every_s):
+                        self._plot()
+                        self.commit()
+                        last_commit = time.perf_counter()
                 now = time.perf_counter()
                 self.elapsed += now - t_wall
                 t_wall = now
+                account()
         finally:
             bar.close()
+            if self.worker is not None:
+                self.worker.close()
+                self.worker = None
+        self._plot()
+        self.log(f"stopped at step {self.step} after {self.elapsed / 60:.1f} min of training "
+                 f"({self.cpu / 3600:.3f} CPU hours); best mean IoU {self.best:.4f}")
+        return {"step": self.step, "best": self.best, "elapsed_s": self.elapsed, "cpu_s": self.cpu}
+
+    def _plot(self) -> None:
         try:
             plot_curves(self.out)
         except ImportError:
             self.log("matplotlib is not installed (the 'train' extra); no curves.png")
-        self.log(f"stopped at step {self.step} after {self.elapsed / 60:.1f} min of training; "
-                 f"best mean IoU {self.best:.4f}")
-        return {"step": self.step, "best": self.best, "elapsed_s": self.elapsed}
 
     def summary(self, val: dict, baseline: dict) -> dict:
         import torch
@@ -502,6 +637,7 @@ class Trainer:
         return {
             "step": self.step,
             "elapsed_s": round(self.elapsed, 1),
+            "cpu_s": round(self.cpu, 1),
             "device": self.device,
             "machine": f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}",
             "holdout_iou": {k: round(v, 5) for k, v in val.items()},
@@ -568,7 +704,9 @@ def main(args) -> int:
     tr = Trainer(cfg, out, progress=not args.quiet)
     try:
         stop = None if getattr(args, "stop_after", None) is None else 60.0 * args.stop_after
-        res = tr.run(resume=args.resume, max_steps=args.max_steps, stop_after_s=stop)
+        every = getattr(args, "commit_every", None)
+        res = tr.run(resume=args.resume, max_steps=args.max_steps, stop_after_s=stop,
+                     commit_every_s=None if every is None else 60.0 * every)
     except ValueError as exc:  # a checkpoint written with another config
         raise NKFInputError(str(exc)) from None
     print(f"{out / 'nkf.safetensors'}: best held-out mean IoU {res['best']:.4f} after {res['step']} steps "
