@@ -108,6 +108,9 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--max-steps", type=int, default=None, metavar="N", help="stop after N more steps")
     t.add_argument("--stop-after", type=float, default=None, metavar="MIN",
                    help="stop this session after MIN minutes of training (checkpointed; --resume continues)")
+    t.add_argument("--commit-every", type=float, default=None, metavar="MIN",
+                   help="git-commit the run folder (only it) at the first checkpoint MIN minutes after the last "
+                        "commit, and at the end, so the run survives the machine")
     t.add_argument("--quiet", action="store_true", help="no progress bar; log lines on stderr instead")
     t.add_argument("--debug", action="store_true", help="show the full traceback on errors")
     return ap
