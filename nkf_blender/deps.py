@@ -3,9 +3,10 @@
 No ``bpy`` here. The check uses :func:`importlib.util.find_spec`, which finds a package without
 importing it, so it is cheap enough for a panel; the result is cached until :func:`refresh`.
 
-* Required for any reconstruction: ``nkf_model`` (bundled with the extension), ``scipy``,
-  ``skimage`` (scikit-image), and a kernel engine: ``numba`` (fast on the CPU) or ``torch``.
-* ``torch`` (PyTorch) is needed for the GPU and for the learned NKF kernel.
+* Required for any reconstruction: ``nkf_model``, ``scipy``, ``skimage`` (scikit-image),
+  ``threadpoolctl``, and a kernel engine: ``numba`` (fast on the CPU) or ``torch``. The
+  self-contained zips bundle all of them (and ``safetensors``, for NKF's weights).
+* ``torch`` (PyTorch) is needed only for the GPU: NKF runs on the CPU without it.
 
 Extra folders (the extension's own ``site-packages`` and a folder the user points to) are
 *appended* to ``sys.path``, so Blender's bundled NumPy always comes first.
@@ -20,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 # import name -> name on PyPI (what the user would install).
-REQUIRED = {"nkf_model": "nkf-model", "scipy": "scipy", "skimage": "scikit-image"}
+REQUIRED = {"nkf_model": "nkf-model", "scipy": "scipy", "skimage": "scikit-image", "threadpoolctl": "threadpoolctl"}
 ENGINES = {"numba": "numba", "torch": "torch"}
 OPTIONAL = {"torch": "torch", "safetensors": "safetensors"}
 
@@ -70,8 +71,8 @@ class DepStatus:
             )
         if not self.torch:
             return (
-                "PyTorch is not installed: the GPU and the NKF method need it. "
-                "Install it in the add-on preferences"
+                "PyTorch is not installed: only the GPU needs it. "
+                "Install GPU support in the add-on preferences"
             )
         return ""
 

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 TORCH_SPEC = "torch==2.13.0"
-OTHER_REQUIREMENTS = ("scipy>=1.13", "scikit-image>=0.26,<0.27", "numba>=0.61", "safetensors>=0.4",
+OTHER_REQUIREMENTS = ("scipy>=1.13", "scikit-image>=0.26,<0.27", "numba>=0.61",
+                      "threadpoolctl>=3.1", "safetensors>=0.4",
                       "plyfile>=1.0", "laspy>=2.5", "lazrs>=0.6", "pye57>=0.4")  # the last four: point-cloud import
 CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 # PyPI's Linux torch wheels are CUDA builds; Windows needs PyTorch's own CUDA index.

@@ -1,14 +1,15 @@
 """Which reconstruction methods ``nkf_model`` can run here.
 
-No ``bpy`` here. The learned NKF kernel may be missing (no weights, no PyTorch); Neural Splines
+No ``bpy`` here. The learned NKF kernel may be missing (no weights, no safetensors); Neural Splines
 needs nothing beyond the required packages. Two answers:
 
 * :func:`method_status` asks ``nkf_model`` itself (``nkf_model.method_available``: it loads the
   weights, so it imports PyTorch, about a second). Used when the real answer is needed: the Python
   API's default method. Cached until :func:`refresh`.
 * :func:`quick_status` imports nothing heavy: the real answer when it is cached, else whether the
-  core ships its weights (:data:`nkf_model.options.DEFAULT_METHOD`) and whether PyTorch and
-  safetensors can be found (``importlib.util.find_spec``, through :mod:`nkf_blender.deps`). Used at
+  core ships its weights (:data:`nkf_model.options.DEFAULT_METHOD`) and whether safetensors (for
+  the weights; PyTorch is optional) can be found (``importlib.util.find_spec``, through
+  :mod:`nkf_blender.deps`). Used at
   registration (the operator's default method) and by the panel, so that enabling the add-on and
   drawing the panel never load PyTorch. A weights file that is there but broken is then reported
   by the reconstruction itself.
@@ -93,7 +94,8 @@ def quick_status(method: str) -> tuple[bool, str]:
     if DEFAULT_METHOD != "nkf":
         return False, "this installation has no default weights for method 'nkf'; use Neural Splines"
     st = deps.status()
-    missing = [name for name in ("torch", "safetensors") if not st.found.get(name)]
+    # PyTorch is not needed: without it the feature network runs in NumPy (same features).
+    missing = [name for name in ("safetensors",) if not st.found.get(name)]
     if missing:
         return False, (
             f"{' and '.join(missing)} {'is' if len(missing) == 1 else 'are'} not installed: "

@@ -164,12 +164,16 @@ def test_quick_method_check_agrees_with_the_real_one_and_imports_nothing(addon, 
     quick = methods.quick_status("nkf")
     assert quick[0] == methods.nkf_available()[0]
     assert methods.quick_status("splines") == (True, "")
-    monkeypatch.setitem(sys.modules, "torch", None)  # as if PyTorch were not installed
+    monkeypatch.setitem(sys.modules, "torch", None)  # as if PyTorch were not installed: NKF runs in NumPy
     deps.refresh()
     methods.refresh()
     try:
+        assert methods.quick_status("nkf") == (True, "") == methods.nkf_available()
+        methods.refresh()
+        monkeypatch.setitem(sys.modules, "safetensors", None)  # without it the weights cannot be read
+        deps.refresh()
         ok, why = methods.quick_status("nkf")
-        assert not ok and why.startswith("torch is not installed") and "preferences" in why
+        assert not ok and why.startswith("safetensors is not installed") and "preferences" in why
         assert methods.quick_default() == "SPLINES"
     finally:
         monkeypatch.undo()
