@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import deps, importer, methods, ops, panel, prefs, prepare, runner, settings
+from . import deps, importer, live, methods, ops, panel, prefs, prepare, runner, settings
 
 _CLASSES = (settings.NKF_PG_settings, *prefs.CLASSES, *ops.CLASSES, *panel.CLASSES, *importer.CLASSES)
 
@@ -44,6 +44,7 @@ def register() -> None:
         if cls is not prefs_cls:
             bpy.utils.register_class(cls)
     bpy.types.Scene.nkf_settings = bpy.props.PointerProperty(type=settings.NKF_PG_settings)
+    live.register()
     if not bpy.app.background:
         # Compile the solver once, in the background, a moment after enabling (not during it: enabling
         # stays cheap); timers never fire headless, where the first run compiles instead.
@@ -65,6 +66,7 @@ def unregister() -> None:
         bpy.app.timers.unregister(_start_prepare)
     if not prepare.stop():
         print("NKF: the first-time preparation did not stop")
+    live.unregister()
     stuck = runner.stop_all()
     if stuck:
         print(f"NKF: worker threads did not stop for {', '.join(stuck)}")

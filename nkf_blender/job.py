@@ -38,7 +38,8 @@ class ReconstructJob:
     (``error`` holds one line for the user), or ``"cancelled"``.
     """
 
-    def __init__(self, points, normals, options: Options, on_progress=None, *, colors=None, viewpoints=None):
+    def __init__(self, points, normals, options: Options, on_progress=None, *, colors=None, viewpoints=None,
+                 fit=None, keep_fit: bool = False):
         if not isinstance(options, Options):
             raise TypeError(f"options must be an nkf_model.options.Options, got {type(options).__name__}")
         self.points = points
@@ -46,6 +47,12 @@ class ReconstructJob:
         self.colors = colors
         self.viewpoints = viewpoints
         self.options = options
+        # A kept nkf_model.Fit of these points and fit settings (nkf_blender.fitcache): the job only
+        # re-solves for Lambda and re-meshes. ``keep_fit``: make one (nkf_model.fit) and leave it in
+        # ``self.fit`` for the cache. ``reused`` says whether a kept fit was used.
+        self.fit = fit
+        self.keep_fit = keep_fit
+        self.reused = fit is not None
         self._listener = on_progress
         self.cancel_event = threading.Event()
         self._lock = threading.Lock()
@@ -140,11 +147,14 @@ class ReconstructJob:
                 normals_mode="estimate" if estimate else opts.normals_mode,
                 orientation=opts.orientation if estimate else None,
             )
-            mesh = nkf_model.reconstruct(
-                self.points, None if estimate else self.normals, options=run,
-                progress=self._on_progress, cancel=self.cancel_event, colors=self.colors,
-                viewpoints=self.viewpoints if estimate else None,
-            )
+            if self.fit is not None or self.keep_fit:
+                mesh = self._fit_and_mesh(nkf_model, run, estimate)
+            else:
+                mesh = nkf_model.reconstruct(
+                    self.points, None if estimate else self.normals, options=run,
+                    progress=self._on_progress, cancel=self.cancel_event, colors=self.colors,
+                    viewpoints=self.viewpoints if estimate else None,
+                )
             subset = mesh.stats.get("subset")
             if subset:
                 self.points_used = int(subset["to"])
@@ -165,6 +175,32 @@ class ReconstructJob:
             self._fail(exc)
         finally:
             self.t_end = time.perf_counter()
+
+    def _fit_and_mesh(self, nkf_model, run: Options, estimate: bool):
+        """``nkf_model.fit`` (or the kept fit, re-solved for ``run.lam``) then ``Fit.mesh``: the
+        same mesh as ``nkf_model.reconstruct`` with these settings."""
+        f = self.fit
+        share = 0.6 if f is None else (0.3 if f.lam != run.lam else 0.0)
+
+        def part(lo, width):
+            def report(fr, st):
+                if st != "done":  # the end of a part is not the end of the job
+                    self._on_progress(lo + width * fr, st)
+
+            return report
+
+        if f is None:
+            f = nkf_model.fit(
+                self.points, None if estimate else self.normals, options=run, progress=part(0.0, share),
+                cancel=self.cancel_event, colors=self.colors, viewpoints=self.viewpoints if estimate else None,
+            )
+            self.fit = f
+        elif f.lam != run.lam:
+            f = f.with_lam(run.lam, progress=part(0.0, share), cancel=self.cancel_event)
+        mesh = f.mesh(resolution=run.resolution, close=run.close, trim=run.trim, min_piece=run.min_piece,
+                      progress=part(share, 1.0 - share), cancel=self.cancel_event)
+        self._on_progress(1.0, "done")
+        return mesh
 
     def _fail(self, exc: Exception) -> None:
         try:

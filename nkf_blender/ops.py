@@ -11,8 +11,9 @@ exists when the call returns. Both paths go through :mod:`nkf_blender.runner`.
 from __future__ import annotations
 
 import bpy
+from bpy.props import StringProperty
 
-from . import prefs, runner, settings
+from . import prefs, result, runner, settings
 from .errors import UserError
 from .job import CANCELLED, FAILED, RUNNING
 
@@ -65,13 +66,36 @@ class OBJECT_OT_nkf_reconstruct(bpy.types.Operator):
     # normals_mode, orientation, use_scan, trim, min_piece, use_close, use_colors) are added by
     # settings.prepare_classes at registration, with the method's default decided then. The memory
     # budget comes from the add-on preferences.
+    source_name: StringProperty(
+        name="Source", default="", options={"HIDDEN", "SKIP_SAVE"},
+        description="The object to reconstruct (default: the active object)",
+    )
+    target_name: StringProperty(
+        name="Result", default="", options={"HIDDEN", "SKIP_SAVE"},
+        description="The result object to update in place (default: the source's latest result)",
+    )
+
+    def _objects(self, context):
+        """The source and the result to update (None: find or add one); raises UserError."""
+        obj = context.active_object
+        if self.source_name:
+            obj = bpy.data.objects.get(self.source_name)
+            if obj is None:
+                raise UserError(f"the source object '{self.source_name}' no longer exists")
+        target = None
+        if self.target_name:
+            target = bpy.data.objects.get(self.target_name)
+            if target is None:
+                raise UserError(f"the result object '{self.target_name}' no longer exists")
+        return obj, target
 
     def execute(self, context):
-        obj = context.active_object
         on_progress = _print_stages() if bpy.app.background else None
         try:
+            obj, target = self._objects(context)
             opts = settings.to_options(self, prefs.memory_budget(context))
-            ob = runner.run_sync(context, obj, opts, on_progress=on_progress, colors=self.use_colors)
+            ob = runner.run_sync(context, obj, opts, on_progress=on_progress, colors=self.use_colors,
+                                 new_object=self.use_new_object, evaluated=self.use_evaluated, target=target)
         except UserError as exc:
             self.report({"ERROR"}, f"NKF: {exc}")
             return {"CANCELLED"}
@@ -84,10 +108,11 @@ class OBJECT_OT_nkf_reconstruct(bpy.types.Operator):
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
-        obj = context.active_object
         try:
+            obj, target = self._objects(context)
             opts = settings.to_options(self, prefs.memory_budget(context))
-            self._key = runner.start(context, obj, opts, colors=self.use_colors)
+            self._key = runner.start(context, obj, opts, colors=self.use_colors, new_object=self.use_new_object,
+                                     evaluated=self.use_evaluated, target=target)
         except UserError as exc:
             self.report({"ERROR"}, f"NKF: {exc}")
             return {"CANCELLED"}
@@ -162,6 +187,30 @@ class OBJECT_OT_nkf_cancel(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class OBJECT_OT_nkf_select_source(bpy.types.Operator):
+    """Select the point cloud this result was reconstructed from and make it active"""
+
+    bl_idname = "object.nkf_select_source"
+    bl_label = "Select Source"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return result.is_result(context.active_object)
+
+    def execute(self, context):
+        ob = context.active_object
+        src = result.source_of(ob)
+        if src is None:
+            self.report({"ERROR"}, f"NKF: the source of '{ob.name}' ('{ob.get('nkf_source', '')}') no longer exists")
+            return {"CANCELLED"}
+        if src.name not in context.view_layer.objects:
+            self.report({"ERROR"}, f"NKF: the source '{src.name}' is not in this view layer")
+            return {"CANCELLED"}
+        result._select_only(context, src)
+        return {"FINISHED"}
+
+
 def _print_stages():
     """A progress listener for headless runs: one line per stage on stdout."""
     seen = set()
@@ -174,4 +223,4 @@ def _print_stages():
     return listener
 
 
-CLASSES = (OBJECT_OT_nkf_reconstruct, OBJECT_OT_nkf_cancel)
+CLASSES = (OBJECT_OT_nkf_reconstruct, OBJECT_OT_nkf_cancel, OBJECT_OT_nkf_select_source)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import deps, estimates, methods, ops, prefs, prepare, runner, settings, source
+from . import deps, estimates, live, methods, ops, prefs, prepare, result, runner, settings, source
 from .errors import UserError
 from .prefs import ADDON, wrapped
 
@@ -86,11 +86,64 @@ def _estimate_line(layout, info, s, context) -> str:
     return look.problem
 
 
+def _result_box(layout, obj, s) -> None:
+    """How the active result was made (its custom properties), with Re-run and Select Source."""
+    box = layout.box()
+    src = result.source_of(obj)
+    name = obj.get("nkf_source", "")
+    if src is None:
+        col = box.column()
+        col.alert = True
+        wrapped(col, f"Result of '{name}', which no longer exists: Re-run is not possible", icon="ERROR", width=WRAP)
+    else:
+        box.label(text=f"Result of '{src.name}'", icon="LINKED")
+    trim = obj.get("nkf_trim", -1.0)
+    lines = [
+        f"{obj.get('nkf_method', '?')}, Lambda {settings.format_lambda(obj.get('nkf_lambda', 0.0))}, "
+        f"Resolution {obj.get('nkf_resolution', 0)}",
+        f"{obj.get('nkf_points', 0):,} points, normals {obj.get('nkf_normals', '?')}, "
+        + ("closed" if trim is None or trim < 0 else f"trim {trim:g}, min piece {obj.get('nkf_min_piece', 0):g}")
+        + (", watertight" if obj.get("nkf_close") else ""),
+        f"{obj.get('nkf_seconds', 0.0):.1f} s, solver {obj.get('nkf_solver', '?')}"
+        + (f", weights {obj['nkf_weights']}" if obj.get("nkf_weights") else ""),
+    ]
+    col = box.column(align=True)
+    for line in lines:
+        col.label(text=line)
+    row = box.row(align=True)
+    sub = row.row(align=True)
+    sub.enabled = src is not None and runner.active_job(src) is None
+    op = sub.operator(ops.OBJECT_OT_nkf_reconstruct.bl_idname, text="Re-run", icon="FILE_REFRESH")
+    for prop in settings.PROPERTY_NAMES:
+        setattr(op, prop, getattr(s, prop))
+    op.use_new_object = False
+    if src is not None:
+        op.source_name, op.target_name = src.name, obj.name
+    row.operator(ops.OBJECT_OT_nkf_select_source.bl_idname, text="Select Source", icon="RESTRICT_SELECT_OFF")
+
+
+def _live_row(layout, s, context) -> None:
+    row = layout.row(align=True)
+    row.prop(s, "live", toggle=True, icon="REC" if s.live else "PLAY")
+    if not s.live:
+        return
+    st = live.STATE
+    if st.key is not None:
+        row.label(text="preview…" if not st.full else "updating…", icon="SORTTIME")
+    elif st.message:
+        wrapped(layout.column(), st.message, icon="INFO", width=WRAP)
+    elif st.last_seconds:
+        row.label(text=f"{'preview' if st.last_preview else 'updated'} in {st.last_seconds:.2f} s")
+
+
 def draw_panel(layout, context) -> None:
     ready = _deps_box(layout)
     _prepare_line(layout)
     obj = context.active_object
     s = context.scene.nkf_settings
+    is_result = result.is_result(obj)
+    if is_result:
+        _result_box(layout, obj, s)
 
     box = layout.box()
     info = source.describe(obj, s.normals_mode.lower())
@@ -124,8 +177,8 @@ def draw_panel(layout, context) -> None:
             sub = col.column()
             sub.alert = True
             wrapped(sub, f"NKF unavailable: {why}", icon="ERROR", width=WRAP)
-    col.prop(s, "regularization", text="Lambda")
-    col.label(text=f"Lambda = {s.regularization:.2g}")
+    col.prop(s, "lambda_text", text="Lambda")
+    col.prop(s, "lambda_log", text="log10 Lambda", slider=True)
     col.prop(s, "resolution")
     col.prop(s, "max_points")
     col.prop(s, "device")
@@ -144,11 +197,14 @@ def draw_panel(layout, context) -> None:
     sub.prop(s, "min_piece")
     col.prop(s, "use_close")
     col.prop(s, "use_colors")
+    col.prop(s, "use_evaluated")
+    col.prop(s, "use_new_object")
 
     if ready and obj is not None and not info.problem:
         problem = _estimate_line(layout, info, s, context) or problem
 
-    act = runner.active_job(obj)
+    job_of = (result.source_of(obj) or obj) if is_result else obj
+    act = runner.active_job(job_of)
     if act is not None:
         frac, label = runner.progress(act.source_uid)
         layout.progress(factor=frac, type="BAR", text=f"{label} {frac * 100:.0f}%")
@@ -160,6 +216,9 @@ def draw_panel(layout, context) -> None:
         op = row.operator(ops.OBJECT_OT_nkf_reconstruct.bl_idname, text="Reconstruct", icon="MESH_ICOSPHERE")
         for name in settings.PROPERTY_NAMES:
             setattr(op, name, getattr(s, name))
+        if is_result and result.source_of(obj) is not None:  # a result: its source again, into it
+            op.source_name, op.target_name = result.source_of(obj).name, obj.name
+        _live_row(layout, s, context)
         others = runner.running_count()
         if others:
             layout.label(text=f"{others} reconstruction{'s' if others > 1 else ''} running", icon="SORTTIME")

@@ -24,7 +24,7 @@ import numpy as np
 
 from nkf_model.options import Options
 
-from . import deps, estimates, result, source
+from . import deps, estimates, fitcache, result, source
 from .errors import UserError
 from .job import CANCELLED, DONE, FAILED, RUNNING, ReconstructJob
 
@@ -38,6 +38,9 @@ class Active:
     source_name: str
     matrix_world: object  # mathutils.Matrix, copied at start
     collections: list  # names of the source's collections
+    fit_key: object = None  # fitcache.FitKey of the points and fit settings
+    new_object: bool = False  # add a new result object even when the source has one
+    target_uid: int | None = None  # the result object to update in place (None: find or add one)
 
 
 @dataclass
@@ -51,6 +54,8 @@ class LastRun:
     triangles: int = 0
     result_name: str = ""
     message: str = ""
+    reused: bool = False  # the source's kept fit was reused (a re-solve or re-mesh only)
+    updated: bool = False  # an existing result was updated in place
     device: str = ""  # "CPU, 2 threads", "CUDA: NVIDIA ..."
 
 
@@ -103,7 +108,8 @@ def record(key: int) -> LastRun | None:
 
 
 def prepare(
-    context, obj, options: Options, on_progress=None, *, colors: bool = True
+    context, obj, options: Options, on_progress=None, *, colors: bool = True, new_object: bool = False,
+    evaluated: bool = True,
 ) -> tuple[ReconstructJob, Active]:
     """Check everything that can be checked now and read the points; the job is not started.
 
@@ -120,12 +126,14 @@ def prepare(
         st = deps.refresh()
     if not st.ready:
         raise UserError(st.message())
-    src = source.read_points(obj, options.normals_mode, colors=bool(colors))
+    src = source.read_points(obj, options.normals_mode, colors=bool(colors), **_evaluated(context, evaluated))
     estimate_normals = src.normals is None
     viewpoints = viewpoint(context, obj) if estimate_normals and options.orientation == "viewpoint" else None
     check_budget(len(src.points), options, estimate_normals, src.colors is not None)
+    fit_key, kept = _kept_fit(obj, options, src.points, src.normals, src.colors, viewpoints)
     job = ReconstructJob(
-        src.points, src.normals, options, on_progress=on_progress, colors=src.colors, viewpoints=viewpoints
+        src.points, src.normals, options, on_progress=on_progress, colors=src.colors, viewpoints=viewpoints,
+        fit=kept, keep_fit=kept is None,
     )
     act = Active(
         job=job,
@@ -133,8 +141,29 @@ def prepare(
         source_name=obj.name,
         matrix_world=obj.matrix_world.copy(),
         collections=[c.name for c in obj.users_collection],
+        fit_key=fit_key,
+        new_object=bool(new_object),
     )
     return job, act
+
+
+def _evaluated(context, evaluated: bool) -> dict:
+    """Keyword arguments for :func:`source.read_points`: the depsgraph when the evaluated geometry
+    (modifiers, Geometry Nodes) is to be read."""
+    return {"depsgraph": context.evaluated_depsgraph_get() if evaluated else None}
+
+
+def _kept_fit(obj, options: Options, *arrays):
+    """The cache key of these arrays and settings, and the kept fit for it (or None)."""
+    key = fitcache.key_for(key_of(obj), options, *arrays)
+    kept = fitcache.CACHE.get(key)
+    if kept is None:
+        # a reduced input was fitted for its resolution: that one is keyed with it
+        key_r = fitcache.key_for(key_of(obj), options, *arrays, resolution_dependent=True)
+        kept = fitcache.CACHE.get(key_r)
+        if kept is not None:
+            key = key_r
+    return key, kept
 
 
 SCANNER_PROPERTY = "nkf_scanner"  # as importer.SCANNER_PROPERTY: an E57 scanner position
@@ -181,9 +210,15 @@ def check_budget(count: int, options: Options, estimate_normals: bool, colors: b
         raise UserError(look.problem)
 
 
-def start(context, obj, options: Options, *, colors: bool = True) -> int:
-    """Start a job for ``obj`` on a worker thread; return its key for :func:`poll` and :func:`finish`."""
-    job, act = prepare(context, obj, options, colors=colors)
+def start(context, obj, options: Options, *, colors: bool = True, new_object: bool = False,
+          evaluated: bool = True, target=None) -> int:
+    """Start a job for ``obj`` on a worker thread; return its key for :func:`poll` and :func:`finish`.
+
+    ``new_object``: add a new result even when ``obj`` has one (else its result is updated in
+    place); ``target``: the result object to update; ``evaluated``: read the evaluated geometry
+    (modifiers and Geometry Nodes applied) instead of the original data."""
+    job, act = prepare(context, obj, options, colors=colors, new_object=new_object, evaluated=evaluated)
+    act.target_uid = None if target is None else key_of(target)
     _active[act.source_uid] = act
     job.start()
     return act.source_uid
@@ -234,7 +269,7 @@ def finish(context, key: int):
         raise RuntimeError("finish() called while the worker is still running; poll() first")
     del _active[key]
     state = CANCELLED if job.cancel_event.is_set() else job.state
-    record = LastRun(act.source_name, state, job.elapsed, job.points_used)
+    record = LastRun(act.source_name, state, job.elapsed, job.points_used, reused=job.reused)
     _last[key] = record
     if state == CANCELLED:
         record.message = "cancelled"
@@ -244,15 +279,32 @@ def finish(context, key: int):
         raise UserError(record.message)
     assert state == DONE and job.result is not None
     src = find_object(key)
+    if job.fit is not None and not job.reused and act.fit_key is not None:
+        fk = act.fit_key
+        if job.fit.resolution_dependent:
+            fk = fitcache.key_for(fk.source, job.options, resolution_dependent=True)
+            fk = fitcache.FitKey(act.fit_key.source, act.fit_key.data, fk.settings)
+        if src is not None and fitcache.CACHE.put(fk, job.fit):
+            fitcache.factorize_later(job.fit)
     matrix = src.matrix_world.copy() if src is not None else act.matrix_world
     collections = [bpy.data.collections.get(n) for n in act.collections]
     if src is not None:
         collections = list(src.users_collection) or collections
     t0 = time.perf_counter()
-    ob = result.add_object(
-        context, job.result, name=result.result_name(act.source_name), source=src, matrix_world=matrix,
-        collections=collections,
-    )
+    target = None
+    if not act.new_object:
+        target = find_object(act.target_uid) if act.target_uid is not None else None
+        target = target if target is not None else result.find_result(src, act.source_name)
+    record.updated = target is not None
+    if target is not None:
+        ob = result.replace_mesh(context, target, job.result)
+    else:
+        ob = result.add_object(
+            context, job.result, name=result.result_name(act.source_name), source=src, matrix_world=matrix,
+            collections=collections,
+        )
+    result.stamp(ob, src, act.source_name, job.options, job.result.stats, job.elapsed,
+                 points_used=job.points_used, colors=job.colors is not None)
     record.seconds = job.elapsed + (time.perf_counter() - t0)
     record.triangles = len(job.result.faces)
     record.result_name = ob.name
@@ -262,13 +314,16 @@ def finish(context, key: int):
     return ob
 
 
-def run_sync(context, obj, options: Options, on_progress=None, *, colors: bool = True):
+def run_sync(context, obj, options: Options, on_progress=None, *, colors: bool = True, new_object: bool = False,
+             evaluated: bool = True, target=None):
     """Read, reconstruct and build in the calling (main) thread; return the new object.
 
     Used by the operator when there is no window to run modal in (``bpy.app.background``, or an
     ``EXEC`` call from a script) and by :func:`nkf_blender.api.reconstruct_object`.
     """
-    job, act = prepare(context, obj, options, on_progress=on_progress, colors=colors)
+    job, act = prepare(context, obj, options, on_progress=on_progress, colors=colors, new_object=new_object,
+                       evaluated=evaluated)
+    act.target_uid = None if target is None else key_of(target)
     _active[act.source_uid] = act
     try:
         job.run()

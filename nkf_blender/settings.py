@@ -25,10 +25,11 @@ What stays Blender's own:
 
 from __future__ import annotations
 
+import math
 import numbers
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
 from nkf_model.errors import InvalidParameterError
 from nkf_model.options import SCAN_MIN_PIECE, SCAN_TRIM, SETTING, Options
@@ -75,8 +76,19 @@ def _blender_id(ids: dict, value) -> str:
     return next(bid for bid, v in ids.items() if v == value)
 
 
-def annotations(default_method: str) -> dict:
-    """Fresh property definitions, for a class's ``__annotations__`` before it is registered."""
+def _changed(self, context) -> None:
+    """A setting that Live follows changed (scene settings only)."""
+    from . import live
+
+    live.changed(self, context)
+
+
+def annotations(default_method: str, update=None) -> dict:
+    """Fresh property definitions, for a class's ``__annotations__`` before it is registered.
+
+    ``update``: the callback of the settings that a kept fit only re-solves or re-meshes for (Lambda,
+    Resolution, trim, Minimum Piece, Watertight), which Live follows."""
+    upd = {} if update is None else {"update": update}
     lam, res, mp = SETTING["lam"], SETTING["resolution"], SETTING["max_points"]
     trim, piece, close = SETTING["trim"], SETTING["min_piece"], SETTING["close"]
     return {
@@ -86,11 +98,11 @@ def annotations(default_method: str) -> dict:
         ),
         "regularization": FloatProperty(
             name=lam.label, default=lam.default, min=lam.low, soft_max=lam.soft_high, precision=6,
-            description=description("lam"),
+            description=LAMBDA_TOOLTIP, **upd,
         ),
         "resolution": IntProperty(
             name=res.label, default=res.default, min=int(res.low), max=int(res.high), soft_max=int(res.soft_high),
-            description=description("resolution"),
+            description=description("resolution"), **upd,
         ),
         "max_points": IntProperty(
             # 0 (all points) is Blender's stand-in for the core's None; 1 to 9 are refused by to_options.
@@ -119,16 +131,30 @@ def annotations(default_method: str) -> dict:
         ),
         "trim": FloatProperty(
             name=trim.label, default=SCAN_TRIM, min=trim.low, soft_max=trim.soft_high, precision=1,
-            description=description("trim", "used while Scan is on"),
+            description=description("trim", "used while Scan is on"), **upd,
         ),
         "min_piece": FloatProperty(
             name=piece.label, default=SCAN_MIN_PIECE, min=piece.low, max=piece.high, soft_max=piece.soft_high,
-            precision=4, step=0.1, description=description("min_piece") + "; used while Scan is on",
+            precision=4, step=0.1, description=description("min_piece") + "; used while Scan is on", **upd,
         ),
-        "use_close": BoolProperty(name=close.label, default=close.default, description=description("close")),
+        "use_close": BoolProperty(name=close.label, default=close.default, description=description("close"), **upd),
         "use_colors": BoolProperty(
             name="Colours", default=True,
             description="Carry the points' colour attribute (e.g. 'Col' from a PLY) onto the mesh",
+        ),
+        "use_new_object": BoolProperty(
+            name="New Object", default=False,
+            description=(
+                "Add a new result object; off: a source that already has a result gets that result updated "
+                "in place (same object, name, materials, modifiers and collection)"
+            ),
+        ),
+        "use_evaluated": BoolProperty(
+            name="Evaluated Geometry", default=True,
+            description=(
+                "Read the points as the viewport shows them (modifiers and Geometry Nodes applied); "
+                "off: the object's original data"
+            ),
         ),
     }
 
@@ -136,7 +162,67 @@ def annotations(default_method: str) -> dict:
 PROPERTY_NAMES = (
     "method", "regularization", "resolution", "max_points", "device",
     "normals_mode", "orientation", "use_scan", "trim", "min_piece", "use_close", "use_colors",
+    "use_new_object", "use_evaluated",
 )
+LAMBDA_TOOLTIP = (
+    SETTING["lam"].description + ". Typed and shown like 1e-10; each step of the log slider is a factor of 10. "
+    "Above 3,000 points the local fits use at least 6 s^2 for the noise s estimated from the points (a floor "
+    "that ignores smaller values)"
+)
+LOG_LAMBDA_MIN, LOG_LAMBDA_MAX = -16.0, math.log10(SETTING["lam"].soft_high)
+
+
+def format_lambda(value: float) -> str:
+    """Lambda as a person reads it: ``1e-10``, ``3.2e-07``, ``0``."""
+    v = float(value)
+    if v == 0.0:
+        return "0"
+    text = f"{v:.2g}"
+    return text.replace("e-0", "e-").replace("e+0", "e")
+
+
+def _get_lambda_text(self) -> str:
+    return format_lambda(self.regularization)
+
+
+def _set_lambda_text(self, text: str) -> None:
+    try:
+        v = float(str(text).strip())
+    except ValueError:
+        return  # not a number: the field shows the current value again
+    if v >= 0 and v == v and v != float("inf"):
+        self.regularization = v
+
+
+def _get_lambda_log(self) -> float:
+    v = float(self.regularization)
+    return LOG_LAMBDA_MIN if v <= 0 else max(LOG_LAMBDA_MIN, math.log10(v))
+
+
+def _set_lambda_log(self, value: float) -> None:
+    self.regularization = 0.0 if value <= LOG_LAMBDA_MIN else float(10.0 ** round(float(value), 2))
+
+
+def scene_annotations() -> dict:
+    """Properties of the scene settings only: Live, and Lambda on a log scale (both views of
+    ``regularization``, which stays the stored value)."""
+    return {
+        "lambda_text": StringProperty(
+            name="Lambda", get=_get_lambda_text, set=_set_lambda_text, description=LAMBDA_TOOLTIP,
+        ),
+        "lambda_log": FloatProperty(
+            name="log10 Lambda", get=_get_lambda_log, set=_set_lambda_log, min=LOG_LAMBDA_MIN, max=LOG_LAMBDA_MAX,
+            soft_min=-12.0, soft_max=LOG_LAMBDA_MAX, step=25, precision=2,
+            description="Lambda on a log scale: -10 is 1e-10, -6 is 1e-6 (smoother). " + LAMBDA_TOOLTIP,
+        ),
+        "live": BoolProperty(
+            name="Live", default=False,
+            description=(
+                "Update the result by itself when Lambda, Resolution or a clean-up setting changes: a coarse "
+                "preview while you drag, the full mesh when you stop (needs one Reconstruct first)"
+            ),
+        ),
+    }
 
 
 def build_options(**settings) -> Options:
@@ -189,4 +275,9 @@ class NKF_PG_settings(bpy.types.PropertyGroup):
 def prepare_classes(default_method: str, *classes) -> None:
     """Give each class its property definitions (call before ``register_class``)."""
     for cls in classes:
-        cls.__annotations__ = {**getattr(cls, "__annotations__", {}), **annotations(default_method)}
+        scene = cls is NKF_PG_settings
+        cls.__annotations__ = {
+            **getattr(cls, "__annotations__", {}),
+            **annotations(default_method, update=_changed if scene else None),
+            **(scene_annotations() if scene else {}),
+        }

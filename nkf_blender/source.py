@@ -142,7 +142,7 @@ def _no_normals(obj) -> str:
     )
 
 
-def read_points(obj, normals_mode: str = "auto", colors: bool = True) -> SourceData:
+def read_points(obj, normals_mode: str = "auto", colors: bool = True, depsgraph=None) -> SourceData:
     """Positions, normals and colours of ``obj`` in its local coordinates.
 
     ``normals_mode`` ``"auto"`` (the object's normals when it has them, else ``None``),
@@ -153,8 +153,15 @@ def read_points(obj, normals_mode: str = "auto", colors: bool = True) -> SourceD
     is never modified. A mesh in Edit Mode is read with its current edits: they are synced to the
     mesh (as Blender's own tools do) and read from a temporary copy, since attributes cannot be
     read while the mesh is being edited.
+
+    ``depsgraph``: read the object as evaluated in it (modifiers and Geometry Nodes applied, what
+    the viewport shows) instead of its original data.
     """
     _data(obj)
+    if depsgraph is not None and obj.mode != "EDIT":
+        ev = obj.evaluated_get(depsgraph)
+        if ev.data is not None and ev.type == obj.type:
+            return _read(obj, ev.data, normals_mode, colors)
     if obj.type == "MESH" and obj.mode == "EDIT":
         obj.update_from_editmode()
         tmp = obj.data.copy()
