@@ -14,7 +14,7 @@ import os
 import textwrap
 
 import bpy
-from bpy.props import EnumProperty, FloatProperty, StringProperty
+from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
 
 from . import deps, installer, methods
 
@@ -48,6 +48,18 @@ def prepare_folder() -> str | None:
         return bpy.utils.extension_path_user(ADDON, path="cache", create=True)
     except (ValueError, OSError):  # a legacy add-on, or a read-only user folder: no marker
         return None
+
+
+def fit_cache_bytes(context=None) -> int:
+    """The Fit Cache preference in bytes (1 GiB when the preferences are not there)."""
+    p = get_prefs(context)
+    return int(getattr(p, "fit_cache_mb", 1024)) * (1 << 20)
+
+
+def _fit_cache_changed() -> None:
+    from . import fitcache
+
+    fitcache.CACHE.set_budget(fit_cache_bytes())
 
 
 def get_prefs(context=None):
@@ -258,6 +270,17 @@ class NKFPreferences(bpy.types.AddonPreferences):
             "starts; 0 uses 60 % of this computer's memory, at most 16 GB"
         ),
     )
+    fit_cache_mb: IntProperty(
+        name="Fit Cache (MB)",
+        default=1024,
+        min=0,
+        soft_max=16384,
+        description=(
+            "Memory for kept fits, so that a new Lambda or Resolution does not start over (least recently "
+            "used dropped first); 0 keeps none"
+        ),
+        update=lambda self, context: _fit_cache_changed(),
+    )
 
     def draw(self, context):
         draw_preferences(self, self.layout, context)
@@ -279,9 +302,8 @@ def draw_preferences(prefs, layout, context) -> None:
     box.operator(NKF_OT_check_dependencies.bl_idname, icon="FILE_REFRESH")
 
     box = layout.box()
-    box.label(text="Install GPU support (PyTorch)", icon="IMPORT")
-    wrapped(box, "The extension brings what the CPU needs (NKF and Neural Splines). For the GPU, pip installs "
-                 f"{installer.TORCH_SPEC} (with SciPy, scikit-image, numba, threadpoolctl and safetensors) into "
+    box.label(text="Install Dependencies", icon="IMPORT")
+    wrapped(box, f"pip installs {installer.TORCH_SPEC}, SciPy, scikit-image, numba and safetensors into "
                  f"{user_site()} (several hundred MB for the CPU build, several GB for CUDA).")
     box.prop(prefs, "install_variant")
     box.prop(prefs, "wheel_dir")
@@ -310,6 +332,7 @@ def draw_preferences(prefs, layout, context) -> None:
     box = layout.box()
     box.label(text="Limits", icon="MEMORY")
     box.prop(prefs, "memory_budget")
+    box.prop(prefs, "fit_cache_mb")
 
 
 CLASSES = (NKF_OT_install_dependencies, NKF_OT_cancel_install, NKF_OT_check_dependencies, NKFPreferences)
