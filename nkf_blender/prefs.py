@@ -302,8 +302,9 @@ def draw_preferences(prefs, layout, context) -> None:
     box.operator(NKF_OT_check_dependencies.bl_idname, icon="FILE_REFRESH")
 
     box = layout.box()
-    box.label(text="Install Dependencies", icon="IMPORT")
-    wrapped(box, f"pip installs {installer.TORCH_SPEC}, SciPy, scikit-image, numba and safetensors into "
+    box.label(text="Install GPU support (PyTorch)", icon="IMPORT")
+    wrapped(box, "The extension brings what the CPU needs (NKF and Neural Splines). For the GPU, pip installs "
+                 f"{installer.TORCH_SPEC} (with SciPy, scikit-image, numba, threadpoolctl and safetensors) into "
                  f"{user_site()} (several hundred MB for the CPU build, several GB for CUDA).")
     box.prop(prefs, "install_variant")
     box.prop(prefs, "wheel_dir")
