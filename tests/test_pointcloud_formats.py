@@ -376,3 +376,11 @@ def test_pcd_read_in_chunks_gives_the_same(tmp_path, kind):
     assert len(chunked.points) == 499 and chunked.skipped == 1
     np.testing.assert_array_equal(whole.points, chunked.points)
     np.testing.assert_array_equal(whole.normals, chunked.normals)
+
+
+def test_csv_with_quoted_header_names(tmp_path):
+    p, _ = sphere(20, seed=22)
+    (tmp_path / "q.csv").write_text('"X","Y","Z","Intensity"\n' + rows(p, np.arange(20.0), sep=","))
+    c = read_point_cloud(tmp_path / "q.csv")
+    np.testing.assert_allclose(c.points, p, atol=1e-8)
+    np.testing.assert_array_equal(c.intensity, np.arange(20.0))

@@ -75,7 +75,7 @@ def _separator(line: str) -> str | None:
 def _header_roles(line: str) -> list[str | None] | None:
     """The roles named by a header line, or None when it names no x y z."""
     text = line.strip().lstrip("/#").strip()
-    names = [t for t in re.split(r"[,;\s]+", text) if t]
+    names = [t.strip("\"'") for t in re.split(r"[,;\s]+", text) if t.strip("\"'")]
     roles = []
     for name in names:
         key = name.lower()
