@@ -22,9 +22,12 @@ from __future__ import annotations
 
 import bpy
 
-from . import deps, importer, live, methods, ops, panel, prefs, prepare, runner, settings
+from . import batch, deps, importer, live, methods, ops, panel, prefs, prepare, preset_menu, runner, settings
 
-_CLASSES = (settings.NKF_PG_settings, *prefs.CLASSES, *ops.CLASSES, *panel.CLASSES, *importer.CLASSES)
+_CLASSES = (
+    settings.NKF_PG_settings, *prefs.CLASSES, *ops.CLASSES, *panel.CLASSES, *importer.CLASSES, *preset_menu.CLASSES,
+    *batch.CLASSES,
+)
 
 
 def register() -> None:

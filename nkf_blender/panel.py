@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import deps, estimates, live, methods, ops, prefs, prepare, result, runner, settings, source
+from . import batch, deps, estimates, live, methods, ops, prefs, prepare, preset_menu, result, runner, settings, source
 from .errors import UserError
 from .prefs import ADDON, wrapped
 
@@ -167,6 +167,7 @@ def draw_panel(layout, context) -> None:
                 use = "carried onto the mesh" if s.use_colors else "off"
                 box.label(text=f"Colours: '{info.colors}' ({use})", icon="COLOR")
 
+    preset_menu.draw_presets(layout)
     col = layout.column()
     col.use_property_split = True
     col.use_property_decorate = False
@@ -219,6 +220,11 @@ def draw_panel(layout, context) -> None:
         if is_result and result.source_of(obj) is not None:  # a result: its source again, into it
             op.source_name, op.target_name = result.source_of(obj).name, obj.name
         _live_row(layout, s, context)
+        many = len(batch.eligible(context))
+        if many > 1 and not batch.running():
+            layout.operator(batch.OBJECT_OT_nkf_reconstruct_selected.bl_idname,
+                            text=f"Reconstruct Selected ({many})", icon="OUTLINER_OB_POINTCLOUD")
+        batch.draw_queue(layout)
         others = runner.running_count()
         if others:
             layout.label(text=f"{others} reconstruction{'s' if others > 1 else ''} running", icon="SORTTIME")

@@ -111,6 +111,11 @@ class RecordingLayout:
         assert prop in data.bl_rna.properties, f"{data!r} has no property {prop!r}"
         self._record("prop", named)
 
+    def menu(self, *args, **kwargs):
+        named = self._check("menu", args, kwargs)
+        assert isinstance(getattr(bpy.types, named["menu"], None), type), f"no menu {named['menu']}"
+        self._record("menu", named)
+
     def operator(self, *args, **kwargs):
         named = self._check("operator", args, kwargs)
         idname = named["operator"]

@@ -51,7 +51,9 @@ def test_no_active_object(scene, bpy_module):
     (rec,) = layout.operators(RECONSTRUCT)
     assert not rec.enabled
     assert not layout.operators(CANCEL)
-    assert set(ext("settings").PROPERTY_NAMES) <= set(layout.props())
+    # Lambda is shown and typed as text ("1e-10") and a log10 slider, both views of regularization
+    shown = set(ext("settings").PROPERTY_NAMES) - {"regularization"} | {"lambda_text", "lambda_log"}
+    assert shown <= set(layout.props())
 
 
 def test_point_cloud_without_normals_gets_a_notice_and_can_run(scene, bpy_module, tmp_path):
@@ -101,13 +103,13 @@ def test_idle_with_a_usable_point_cloud(bpy_module, ball):
     text = layout.joined()
     assert "ball: 400 points" in text
     assert "Normals: 'normal' attribute" in text
-    assert "Lambda = 1e-08" in text
+    assert s.lambda_text == "1e-8" and "lambda_text" in layout.props()
     assert not layout.alerts()
     (rec,) = layout.operators(RECONSTRUCT)
     assert rec.enabled
     assert rec.op_props["resolution"] == 77 and rec.op_props["method"] == "SPLINES"
     assert rec.op_props["regularization"] == pytest.approx(1e-8)
-    (lam,) = [i for i in layout.items if i.kind == "prop" and i.args["property"] == "regularization"]
+    (lam,) = [i for i in layout.items if i.kind == "prop" and i.args["property"] == "lambda_text"]
     assert lam.text == "Lambda"
 
 

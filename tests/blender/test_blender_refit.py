@@ -3,6 +3,7 @@ how they were made, Live, Lambda on a log scale, evaluated geometry, and the fau
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -243,6 +244,7 @@ def test_panel_shows_the_result_with_rerun_and_live(sphere, bpy_module):
     assert buttons["Re-run"].enabled and buttons["Re-run"].op_props["target_name"] == res.name
     assert buttons["Re-run"].op_props["source_name"] == "sphere" and "Select Source" in buttons
     assert {"live", "lambda_text", "lambda_log", "use_evaluated", "use_new_object"} <= set(layout.props())
+    assert [i.text for i in layout.items if i.kind == "menu"] == ["NKF Presets"]
     assert "regularization" not in layout.props()
     bpy.data.objects.remove(sphere)
     bpy.context.view_layer.update()
@@ -251,3 +253,59 @@ def test_panel_shows_the_result_with_rerun_and_live(sphere, bpy_module):
     ext("panel").draw_panel(layout, bpy.context)
     assert "no longer exists" in layout.joined()
     assert not {i.text: i for i in layout.operators()}["Re-run"].enabled
+
+
+def test_presets_set_the_scene_settings_and_user_presets_are_saved(scene, bpy_module):
+    bpy = bpy_module
+    pm = ext("preset_menu")
+    s = scene.nkf_settings
+    expect = {
+        "Closed_Object": {"use_scan": False, "orientation": "OUTWARD", "method": "NKF", "resolution": 192},
+        "Room_Scan": {"use_scan": True, "orientation": "VIEWPOINT", "method": "SPLINES", "resolution": 256},
+        "Terrain": {"use_scan": True, "orientation": "UP", "trim": 4.0},
+        "Sparse_Sketch": {"use_scan": False, "resolution": 96},
+    }
+    assert sorted(f[:-3] for f in os.listdir(pm.BUNDLED) if f.endswith(".py")) == sorted(expect)
+    for name, values in expect.items():
+        path = os.path.join(pm.BUNDLED, name + ".py")
+        assert bpy.ops.script.execute_preset(filepath=path, menu_idname="NKF_MT_presets") == {"FINISHED"}
+        assert {k: getattr(s, k) for k in values} == values, name
+    assert s.regularization == pytest.approx(1e-6)  # Sparse Sketch, the last one: smoother
+    s.resolution, s.lambda_text = 77, "3e-9"
+    assert bpy.ops.nkf.preset_add(name="My Setup") == {"FINISHED"}
+    mine = [os.path.join(d, "My_Setup.py") for d in pm.preset_dirs()[1:]]
+    mine = [p for p in mine if os.path.isfile(p)]
+    assert len(mine) == 1
+    s.resolution, s.regularization = 128, 1e-10
+    assert bpy.ops.script.execute_preset(filepath=mine[0], menu_idname="NKF_MT_presets") == {"FINISHED"}
+    assert s.resolution == 77 and s.regularization == pytest.approx(3e-9)
+    os.remove(mine[0])
+
+
+def test_reconstruct_selected_runs_each_source_and_skips_what_cannot_run(sphere, bpy_module, tmp_path, capsys):
+    bpy = bpy_module
+    batch = ext("batch")
+    pts, nrm = fibonacci_sphere(300, 1.0, (6.0, 0.0, 0.0))
+    other = import_ply(bpy, write_ply(tmp_path / "ball.ply", pts, nrm))
+    empty = bpy.data.objects.new("empty_cloud", bpy.data.meshes.new("empty_cloud"))
+    bpy.context.scene.collection.objects.link(empty)
+    s = bpy.context.scene.nkf_settings
+    s.method, s.resolution = "SPLINES", 32
+    for ob in (sphere, other, empty):
+        ob.select_set(True)
+    bpy.context.view_layer.objects.active = sphere
+    assert [o.name for o in batch.eligible(bpy.context)] == ["sphere", "ball", "empty_cloud"]
+    assert bpy.ops.object.nkf_reconstruct_selected() == {"FINISHED"}
+    assert batch.BATCH.done["sphere"] == "done" and batch.BATCH.done["ball"] == "done"
+    assert batch.BATCH.done["empty_cloud"].startswith("failed") and "no points" in batch.BATCH.done["empty_cloud"]
+    made = {o["nkf_source"]: o for o in bpy.data.objects if "nkf_source" in o.keys()}
+    assert set(made) == {"sphere", "ball"} and made["ball"]["nkf_points"] == 300
+    assert "2 of 3 reconstructed" in capsys.readouterr().out
+    # results are not sources of a new batch; a second batch updates the results in place
+    for ob in (sphere, other, *made.values()):
+        ob.select_set(True)
+    bpy.context.view_layer.objects.active = sphere
+    n = len(bpy.data.objects)
+    assert [o.name for o in batch.eligible(bpy.context)] == ["sphere", "ball"]
+    assert bpy.ops.object.nkf_reconstruct_selected() == {"FINISHED"}
+    assert len(bpy.data.objects) == n

@@ -22,6 +22,7 @@ STORED_ENUMS = {
 PROPERTY_NAMES = (
     "method", "regularization", "resolution", "max_points", "device",
     "normals_mode", "orientation", "use_scan", "trim", "min_piece", "use_close", "use_colors",
+    "use_new_object", "use_evaluated",
 )
 # Blender property -> the core's setting it reads its texts and ranges from.
 CORE = {
