@@ -41,7 +41,11 @@ def test_worker_and_resume_give_the_same_run_as_one_session(tmp_path):
     cfg0 = str(_config(tmp_path, 0))
     assert main(["train", "--config", cfg0, "--out", str(b), "--max-steps", "2", "--quiet"]) == 0
     assert torch.load(b / "checkpoint.pt", weights_only=True)["step"] == 2
+    with open(b / "metrics.csv", "a") as fh:  # a step logged after the checkpoint, before the session ended
+        fh.write("train,3,1.0,1.0,0.5,0.4,0.1,0.001,0,,,\n")
     assert main(["train", "--config", cfg0, "--out", str(b), "--resume", "--quiet"]) == 0
+    steps = [int(r.split(",")[1]) for r in (b / "metrics.csv").read_text().splitlines() if r.startswith("train,")]
+    assert steps == [1, 2, 3, 4]
     sa = torch.load(a / "checkpoint.pt", weights_only=True)
     sb = torch.load(b / "checkpoint.pt", weights_only=True)
     assert sa["step"] == sb["step"] == 4

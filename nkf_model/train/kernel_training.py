@@ -386,7 +386,27 @@ class Trainer:
         self.best = float(state["best"])
         self.elapsed = float(state["elapsed"])
         self.cpu = float(state.get("cpu", 0.0))
+        self._drop_metrics_after(self.step)
         return True
+
+    def _drop_metrics_after(self, step: int) -> None:
+        """Remove ``metrics.csv`` rows of steps after ``step``: a session that ended between two
+        checkpoints logged steps that the resumed run does again."""
+        path = self.out / "metrics.csv"
+        if not path.exists():
+            return
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh))
+        if not rows:
+            return
+        col = rows[0].index("step") if "step" in rows[0] else None
+        if col is None:
+            return
+        kept = [rows[0]] + [r for r in rows[1:] if not (r[col].isdigit() and int(r[col]) > step)]
+        if len(kept) < len(rows):
+            with open(path, "w", newline="") as fh:
+                csv.writer(fh).writerows(kept)
+            self.log(f"resume: dropped {len(rows) - len(kept)} metrics rows after step {step}")
 
     # -- schedule ------------------------------------------------------------------------
     def progress_fraction(self) -> float:
@@ -667,15 +687,27 @@ def plot_curves(out: Path) -> Path:
     ax1.set_ylabel("training loss")
     ax1.legend()
     val = [r for r in rows if r["kind"] == "val"]
+    if any("/" in r["config"] for r in val):
+        # held-out sources: one curve per kind (the mean over its validation settings), and the mean
+        for r in val:
+            r["config"] = r["config"].split("/")[0]
+        val += [dict(r, config="mean of kinds") for r in val]
     names = sorted({r["config"] for r in val})
     for i, name in enumerate(names):
-        pts = [(int(r["step"]), float(r["iou_nkf"])) for r in val if r["config"] == name and r["iou_nkf"]]
-        base = [float(r["iou_splines"]) for r in val if r["config"] == name and r["iou_splines"]]
-        if pts:
-            s, v = np.array(pts).T
-            ax2.plot(s, v, "o-", color=f"C{i}", label=f"nkf {name}")
+        by_step: dict = {}
+        base: list = []
+        for r in val:
+            if r["config"] == name and r["iou_nkf"]:
+                by_step.setdefault(int(r["step"]), []).append(float(r["iou_nkf"]))
+            if r["config"] == name and r["iou_splines"] and int(r["step"]) == 0:
+                base.append(float(r["iou_splines"]))
+        if not base:
+            base = [float(r["iou_splines"]) for r in val if r["config"] == name and r["iou_splines"]]
+        if by_step:
+            s = sorted(by_step)
+            ax2.plot(s, [np.mean(by_step[k]) for k in s], "o-", color=f"C{i}", label=f"nkf {name}")
         if base:
-            ax2.axhline(base[0], color=f"C{i}", ls="--", lw=0.8)
+            ax2.axhline(np.mean(base), color=f"C{i}", ls="--", lw=0.8)
     ax2.set_xlabel("step")
     ax2.set_ylabel("held-out IoU (dashed: splines)")
     ax2.legend(fontsize=7)
