@@ -116,7 +116,7 @@ def test_same_mesh_with_either_backend(monkeypatch):
     n = v / np.linalg.norm(v, axis=1, keepdims=True)
     kw = dict(method="nkf", resolution=48, device="cpu")
     mt = nkf_model.reconstruct(v, n, **kw)
-    monkeypatch.setattr(weights_mod, "torch_installed", lambda: False)
+    monkeypatch.setitem(sys.modules, "torch", None)  # as if PyTorch were not installed
     assert weights_mod.resolve_backend("auto") == "numpy"
     mn = nkf_model.reconstruct(v, n, **kw)
     box = np.ptp(v, axis=0).max()

@@ -215,8 +215,34 @@ class TorchEngine(Engine):
         return acc.cpu().numpy() * cr
 
 
+def cuda_driver_present() -> bool:
+    """Whether this machine has an NVIDIA driver at all, told without importing PyTorch (which
+    takes seconds): its device files or driver version on Linux (``/usr/lib/wsl`` on WSL), the
+    driver library on Windows; never on macOS. Without one, PyTorch cannot see a CUDA device."""
+    import os
+    import sys
+
+    if sys.platform == "darwin":
+        return False
+    if sys.platform.startswith("linux"):
+        if any(os.path.exists(p) for p in ("/proc/driver/nvidia/version", "/dev/nvidiactl", "/dev/nvidia0")):
+            return True
+        return os.path.isdir("/usr/lib/wsl/lib") and any(
+            name.startswith("libcuda.so") for name in os.listdir("/usr/lib/wsl/lib")
+        )
+    import ctypes.util
+
+    return ctypes.util.find_library("nvcuda") is not None
+
+
 def cuda_available() -> bool:
-    """True when PyTorch is installed and sees a CUDA device."""
+    """True when PyTorch is installed and sees a CUDA device. PyTorch is imported only when an
+    NVIDIA driver is there (:func:`cuda_driver_present`) or it already was, so the CPU path of a
+    machine without a GPU never pays for importing it."""
+    import sys
+
+    if "torch" not in sys.modules and not cuda_driver_present():
+        return False
     try:
         import torch
     except ImportError:

@@ -95,8 +95,9 @@ def main(step: str, zip_path: str, sample: str, out_json: str, methods: str = "S
         result.update(_enable())
         if step == "reconstruct-prepared":
             prep = importlib.import_module(f"{PKG}.prepare")
+            prefs = importlib.import_module(f"{PKG}.prefs")
             t0 = time.perf_counter()
-            prep.start()
+            prep.start(prefs.prepare_folder())  # what the add-on's timer does after enabling in the UI
             assert prep.wait(timeout=900), "the preparation did not finish"
             result["prepare_s"] = time.perf_counter() - t0
             result["prepare_state"] = prep.status().state
