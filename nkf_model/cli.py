@@ -189,6 +189,8 @@ def cmd_reconstruct(args) -> int:
     colors = None if args.no_colors else cloud.colors
     if len(points) == 0:
         raise NKFInputError(f"{args.input}: the file holds no points")
+    if cloud.skipped:
+        _say(f"warning: dropped {cloud.skipped:,} points with NaN or infinite coordinates")
     # Viewpoints in the points' frame: the user's (file coordinates) less the offset, else the file's own.
     viewpoints = None
     if args.viewpoint:

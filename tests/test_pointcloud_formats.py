@@ -137,7 +137,7 @@ def test_e57_invalid_points_are_skipped(tmp_path):
     invalid = np.zeros(1000, bool)
     invalid[::10] = True
     c = read_point_cloud(write_e57(tmp_path / "v.e57", [{"xyz": a, "invalid": invalid}]))
-    assert len(c.points) == 900 and c.skipped == 100
+    assert len(c.points) == 900 and c.skipped == 0  # invalid means no return: not a point, not an error
     np.testing.assert_allclose(c.points, a[~invalid])
 
 

@@ -52,7 +52,7 @@ class PointCloud:
     scans : int
         Scans in the file (E57); 1 for the others.
     skipped : int
-        Rows dropped for non-finite coordinates (or flagged invalid, E57).
+        Rows dropped for non-finite coordinates.
     filtered : int
         Rows left out by a classification filter.
     """
@@ -87,7 +87,7 @@ class PointCloud:
             k = len(self.viewpoints)
             parts.append(f"{k} scanner position{'s' if k != 1 else ''}")
         if self.skipped:
-            parts.append(f"{self.skipped:,} rows with NaN, infinite or invalid coordinates skipped")
+            parts.append(f"{self.skipped:,} rows with NaN or infinite coordinates skipped")
         if self.filtered:
             parts.append(f"{self.filtered:,} points of other classes left out")
         if np.any(self.offset):
@@ -193,7 +193,7 @@ class Gatherer:
                 raise PointCloudFileError(f"{self.path}: no point of the classes asked for ({self.filtered:,} others)")
             if self.skipped:
                 raise PointCloudFileError(
-                    f"{self.path}: every point has NaN, infinite or invalid coordinates ({self.skipped:,})"
+                    f"{self.path}: every point has NaN or infinite coordinates: 0 usable points of {self.skipped:,}"
                 )
             raise PointCloudFileError(f"{self.path}: the file holds no points")
         out = {}

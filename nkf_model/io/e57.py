@@ -108,12 +108,15 @@ def read_e57(path, *, classes=None, progress=None, chunk_size: int = CHUNK) -> P
                         if coords is SPHERICAL:  # range, azimuth, elevation -> x, y, z
                             a, b, c = a * np.cos(c) * np.cos(b), a * np.cos(c) * np.sin(b), a * np.sin(c)
                         xyz = np.stack([a, b, c], axis=1) @ rot.T + trans
-                        if invalid in cols:
-                            xyz[np.asarray(cols[invalid]) != 0] = np.nan  # counted and dropped as skipped
                         rgb = None
                         if has_rgb:
                             rgb = colors_to_uint8(np.stack([cols[k] for k in COLORS], axis=1), rgb_scale)
                         inten = np.asarray(cols["intensity"], np.float32) if "intensity" in cols else None
+                        if invalid in cols:  # no return (or no coordinates): not a point
+                            ok = np.asarray(cols[invalid]) == 0
+                            xyz = xyz[ok]
+                            rgb = None if rgb is None else rgb[ok]
+                            inten = None if inten is None else inten[ok]
                         g.add(xyz, colors=rgb, intensity=inten)
                         got_scan += n
                         read += n

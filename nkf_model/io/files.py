@@ -63,6 +63,10 @@ def read_point_cloud(path, *, classes=None, columns=None, progress=None) -> Poin
         library the format needs is not installed (the message says what to install).
     """
     p = Path(path)
+    if p.is_dir():
+        raise PointCloudFileError(f"{p}: is a folder, not a point-cloud file")
+    if not p.exists():
+        raise PointCloudFileError(f"{p}: no such file")
     kind = POINT_FORMATS.get(p.suffix.lower())
     if kind is None:
         known = " ".join(sorted(POINT_FORMATS))
@@ -163,10 +167,11 @@ def _check_space(path: Path, size: int | None) -> None:
     if size is None:
         return
     try:
-        free = shutil.disk_usage(path.parent if str(path.parent) else ".").free
+        usage = shutil.disk_usage(path.parent if str(path.parent) else ".")
     except OSError:
         return
-    if size > free:
+    free = usage.free
+    if usage.total > 0 and size > free:  # pseudo file systems (/proc) report no size: the write says
         raise OutputPathError(
             f"{path}: not enough space in {path.parent}: the file needs {size / 2**20:,.1f} MiB, "
             f"{free / 2**20:,.1f} MiB are free"
