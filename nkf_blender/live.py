@@ -13,7 +13,7 @@ that has a result and a kept fit; it never starts a whole new fit by itself.
 Headless Blender has no timers: call :func:`tick` until it returns None.
 
 Also here: the handlers that forget kept fits when a source's geometry changes, an object is
-deleted, or another file is loaded.
+deleted, or another file is loaded (which also cancels every job: nothing lands in the new file).
 """
 
 from __future__ import annotations
@@ -166,7 +166,15 @@ def _redraw(context) -> None:
 # -- forgetting kept fits -----------------------------------------------------------------------
 @persistent
 def _on_load_pre(*_args) -> None:
+    """Another file replaces this one: stop every job (nothing is added to the new file; a modal
+    operator's cancel() finds its job gone) and forget every kept fit."""
     stop()
+    from . import batch
+
+    batch.cancel_all()
+    stuck = runner.stop_all(timeout=10.0)
+    if stuck:
+        print(f"NKF: worker threads did not stop for {', '.join(stuck)}")
     fitcache.stop_factorizing(timeout=0.0)
     fitcache.CACHE.clear()
 

@@ -309,3 +309,15 @@ def test_reconstruct_selected_runs_each_source_and_skips_what_cannot_run(sphere,
     assert [o.name for o in batch.eligible(bpy.context)] == ["sphere", "ball"]
     assert bpy.ops.object.nkf_reconstruct_selected() == {"FINISHED"}
     assert len(bpy.data.objects) == n
+
+
+def test_file_loaded_during_a_job_cancels_it_and_adds_nothing(sphere, bpy_module):
+    from nkf_model.options import Options
+
+    bpy = bpy_module
+    runner, fitcache = ext("runner"), ext("fitcache")
+    key = runner.start(bpy.context, sphere, Options(method="splines", resolution=64, device="cpu"))
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert runner.poll(key) == "cancelled" and runner.running_count() == 0
+    assert runner.finish(bpy.context, key) is None
+    assert len(bpy.data.objects) == 0 and len(fitcache.CACHE) == 0
