@@ -95,3 +95,23 @@ def test_commit_takes_only_the_run_folder(tmp_path):
     tr.out = tmp_path / "elsewhere"
     tr.out.mkdir()
     assert Trainer.commit(tr) is False and "not in a git repository" in logged[-1]
+
+
+def test_a_checkpoint_accepts_settings_added_later_only_at_their_defaults():
+    import json
+
+    from nkf_model.train.kernel_training import config_matches
+
+    cfg = load_config("configs/nkf-sources.toml").to_dict()
+    assert config_matches(json.loads(json.dumps(cfg)), cfg)
+    older = json.loads(json.dumps(cfg))
+    del older["train"]["checkpoint_minutes"]  # written before the setting existed
+    assert not config_matches(older, cfg)  # the run uses 5, not the default 0
+    cfg0 = dict(cfg, train=dict(cfg["train"], checkpoint_minutes=0.0))
+    assert config_matches(older, cfg0)
+    changed = json.loads(json.dumps(cfg))
+    changed["augment"]["noise_max"] = 0.02
+    assert not config_matches(changed, cfg)
+    removed = json.loads(json.dumps(cfg))
+    removed["data"]["retired_setting"] = 1
+    assert not config_matches(removed, cfg)

@@ -126,6 +126,29 @@ class TrainConfig:
         }
 
 
+def config_matches(stored: dict, current: dict) -> bool:
+    """Whether a checkpoint's config (``stored``) is the same run as ``current``.
+
+    Equal, except that a setting added to the code after the checkpoint was written (absent from
+    ``stored``) is accepted when ``current`` has its default value, so a run spanning sessions
+    survives new options that do not change it.
+    """
+    defaults = TrainConfig().to_dict()
+
+    def same(a, b, d) -> bool:
+        if isinstance(a, dict) and isinstance(b, dict):
+            if set(a) - set(b):
+                return False
+            return all(
+                same(a[k], b[k], d.get(k) if isinstance(d, dict) else None) if k in a
+                else isinstance(d, dict) and k in d and json.dumps(b[k]) == json.dumps(d[k])
+                for k in b
+            )
+        return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+    return same(stored, current, defaults)
+
+
 def _section(cls, d: dict, name: str):
     names = {f.name for f in fields(cls)}
     unknown = set(d) - names
@@ -376,7 +399,7 @@ class Trainer:
         if not path.exists():
             return False
         state = torch.load(path, map_location=self.device, weights_only=True)
-        if state["config"] != json.dumps(self.cfg.to_dict(), sort_keys=True):
+        if not config_matches(json.loads(state["config"]), self.cfg.to_dict()):
             raise ValueError(
                 f"{path} was written with a different config; start a new --out folder or restore the config"
             )
