@@ -1,0 +1,99 @@
+"""The first-time preparation (compiling the solver in the background): progress in the panel, a
+marker so it runs once, a clear message when it fails, and a prompt stop when the add-on is
+disabled meanwhile. The real compilation is measured in tests/blender_env (a fresh install);
+here ``warm_up`` is replaced by a stand-in that can be held, failed or cancelled at will."""
+
+from __future__ import annotations
+
+import threading
+from types import SimpleNamespace
+
+import pytest
+from blender_helpers import ext
+from recording_layout import RecordingLayout
+
+import nkf_model.pipeline.warmup as warmup_mod
+from nkf_model import Cancelled
+
+
+def _draw(bpy) -> RecordingLayout:
+    layout = RecordingLayout()
+    bpy.types.VIEW3D_PT_nkf.draw(SimpleNamespace(layout=layout), bpy.context)
+    return layout
+
+
+@pytest.fixture
+def held_warm_up(monkeypatch):
+    """``warm_up`` that reports 25 % and then waits for ``release`` (or the cancel event)."""
+    release = threading.Event()
+    calls = []
+
+    def fake(progress=None, cancel=None, methods=("splines", "nkf")):
+        calls.append(1)
+        progress(0.25, "exact solve, Neural Splines")
+        while not release.wait(0.02):
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("the preparation was cancelled")
+        progress(1.0, "done")
+        return {}
+
+    monkeypatch.setattr(warmup_mod, "warm_up", fake)
+    yield SimpleNamespace(release=release, calls=calls)
+    release.set()
+    ext("prepare").stop()
+
+
+def test_runs_once_with_progress_in_the_panel(scene, bpy_module, held_warm_up, tmp_path):
+    prepare = ext("prepare")
+    assert prepare.start(tmp_path, force=True)
+    deadline = threading.Event()
+    while prepare.status().fraction < 0.25 and not deadline.wait(0.02):
+        pass
+    (bar,) = [i for i in _draw(bpy_module).items if i.kind == "progress"]
+    assert bar.text == "Preparing the solver (first time only) 25%"
+    held_warm_up.release.set()
+    assert prepare.wait(10) and prepare.status().state == "done"
+    assert "Preparing" not in _draw(bpy_module).joined()
+    assert "numba" in (tmp_path / prepare.MARKER).read_text()
+    assert prepare.is_prepared(tmp_path)
+    assert not prepare.start(tmp_path)  # prepared: nothing to do
+    assert held_warm_up.calls == [1]
+
+
+def test_failure_is_one_line_in_the_panel_and_leaves_no_marker(scene, bpy_module, monkeypatch, tmp_path):
+    def broken(progress=None, cancel=None, methods=()):
+        raise ImportError("No module named 'llvmlite'\n(more lines)")
+
+    monkeypatch.setattr(warmup_mod, "warm_up", broken)
+    prepare = ext("prepare")
+    assert prepare.start(tmp_path, force=True) and prepare.wait(10)
+    st = prepare.status()
+    assert st.state == "failed" and st.error == "ImportError: No module named 'llvmlite'"
+    assert "Preparing the solver failed: ImportError: No module named 'llvmlite'" in " ".join(
+        _draw(bpy_module).alerts())
+    assert not (tmp_path / prepare.MARKER).exists()
+
+
+def test_unwritable_folder_still_prepares(scene, bpy_module, held_warm_up, tmp_path):
+    # A folder that cannot be made (its parent is a file; a chmod would not stop root).
+    (tmp_path / "file").write_text("")
+    folder = tmp_path / "file" / "cache"
+    prepare = ext("prepare")
+    held_warm_up.release.set()
+    assert prepare.start(folder, force=True) and prepare.wait(10)
+    assert prepare.status().state == "done"
+    assert not prepare.is_prepared(folder)  # no marker: it runs again next session, from numba's cache
+
+
+def test_disabling_the_add_on_meanwhile_stops_it(bpy_module, addon, held_warm_up, tmp_path):
+    import addon_utils
+
+    prepare = ext("prepare")
+    assert prepare.start(tmp_path, force=True)
+    pkg = addon.__name__
+    addon_utils.disable(pkg, default_set=True)
+    try:
+        assert prepare.status().state == "cancelled"
+        assert not [t for t in threading.enumerate() if t.name == prepare.THREAD_NAME and t.is_alive()]
+    finally:
+        addon_utils.enable(pkg, default_set=True)
