@@ -61,6 +61,11 @@ BUNDLED = (
     "safetensors==0.8.0",
     "tqdm==4.70.1",
     "plyfile==1.1.3",
+    # File > Import > Point Cloud: LAS/LAZ (laspy, its lazrs backend) and E57 (pye57, pyquaternion).
+    "laspy==2.7.0",
+    "lazrs==0.8.2",
+    "pye57==0.4.19",
+    "pyquaternion==0.9.9",
 )
 
 # Blender's platform names -> the wheel platform tags pip may take for it (Blender 4.2 needs glibc
