@@ -384,3 +384,11 @@ def test_csv_with_quoted_header_names(tmp_path):
     c = read_point_cloud(tmp_path / "q.csv")
     np.testing.assert_allclose(c.points, p, atol=1e-8)
     np.testing.assert_array_equal(c.intensity, np.arange(20.0))
+
+
+def test_text_with_bom_and_windows_line_ends(tmp_path):
+    p, n = sphere(20, seed=23)
+    text = "\ufeffx,y,z,nx,ny,nz\r\n" + rows(p, n, sep=",").replace("\n", "\r\n")
+    (tmp_path / "w.csv").write_bytes(text.encode("utf-8"))
+    c = read_point_cloud(tmp_path / "w.csv")
+    np.testing.assert_allclose(c.normals, n, atol=1e-8)

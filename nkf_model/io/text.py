@@ -181,7 +181,7 @@ def read_text(path, *, columns=None, classes=None, progress=None, chunk_lines: i
         raise PointCloudFileError(f"{p}: no such file" if not p.exists() else f"{p}: is not a file")
     size = max(p.stat().st_size, 1)
     try:
-        fh = open(p, encoding="utf-8", errors="strict", newline=None)
+        fh = open(p, encoding="utf-8-sig", errors="strict", newline=None)  # -sig: a BOM is not a column name
     except PermissionError:
         raise PointCloudFileError(f"{p}: permission denied") from None
     except OSError as exc:
