@@ -59,8 +59,12 @@ def _normals_line(box, info, s, context) -> str:
         box.label(text=f"Normals: estimated ({orient})", icon="INFO")
     else:
         wrapped(box, f"No normals: they will be estimated ({orient})", icon="INFO", width=WRAP)
-    if s.orientation == "VIEWPOINT" and context.scene.camera is None and not runner.scanners(context.active_object):
-        return "Orientation Viewpoint needs a scene camera (where the scanner was)"
+    if s.orientation == "VIEWPOINT":
+        scanners = runner.scanners(context.active_object)
+        if scanners:
+            box.label(text=f"Viewpoints: the {len(scanners)} scanner position(s) of the scan", icon="INFO")
+        elif context.scene.camera is None:
+            return "Orientation Viewpoint needs a scene camera (where the scanner was)"
     return ""
 
 

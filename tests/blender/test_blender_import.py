@@ -105,6 +105,13 @@ def test_e57_scanners_orient_and_the_result_exports_in_map_coordinates(scene, bp
     got = sorted(tuple(np.array(e.matrix_world.translation) + offset) for e in empties)
     np.testing.assert_allclose(got, sorted([tuple(t2), tuple(t1)]), atol=1e-3)
     assert bpy.context.scene.camera is None
+    bpy.context.view_layer.objects.active = cloud
+    settings = bpy.context.scene.nkf_settings
+    settings.orientation, settings.normals_mode = "VIEWPOINT", "ESTIMATE"
+    layout = RecordingLayout()
+    bpy.types.VIEW3D_PT_nkf.draw(SimpleNamespace(layout=layout), bpy.context)
+    shown = layout.joined()
+    assert "Viewpoints: the 2 scanner position(s) of the scan" in shown and "needs a scene camera" not in shown
     vp = ext("runner").viewpoint(bpy.context, cloud)
     np.testing.assert_allclose(sorted(map(tuple, vp + offset)), sorted([tuple(t2), tuple(t1)]), atol=1e-3)
     bpy.context.view_layer.objects.active = cloud
