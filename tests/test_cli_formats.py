@@ -194,3 +194,16 @@ def test_a_write_that_fails_midway_leaves_nothing(tmp_path, capsys, monkeypatch)
 
     monkeypatch.setattr(fio, "_write_ply_mesh", full)
     bad(tmp_path, capsys, tmp_path / "a.ply", "cannot be written (No space left on device)")
+
+
+def test_columns_option_for_text(tmp_path, capsys):
+    p, n = sphere(500, seed=10, radius=2.0)
+    np.savetxt(tmp_path / "odd.txt", np.c_[np.arange(500), n, p])  # id nx ny nz x y z: no guess fits
+    code, _, err = run(["reconstruct", tmp_path / "odd.txt", tmp_path / "o.ply", *FAST, "--quiet"], capsys)
+    assert code == 1 and "cannot tell what its 7 columns are" in err and "--columns" in err
+    code, out, err = run(["reconstruct", tmp_path / "odd.txt", tmp_path / "o.ply", *FAST,
+                          "--columns", "_ nx ny nz x y z"], capsys)
+    assert code == 0, err
+    assert "TXT text: 500 points, normals" in out and "estimating" not in err
+    r = np.linalg.norm(ply_vertices(tmp_path / "o.ply"), axis=1)
+    assert np.abs(r - 2.0).max() < 0.1

@@ -392,3 +392,10 @@ def test_text_with_bom_and_windows_line_ends(tmp_path):
     (tmp_path / "w.csv").write_bytes(text.encode("utf-8"))
     c = read_point_cloud(tmp_path / "w.csv")
     np.testing.assert_allclose(c.normals, n, atol=1e-8)
+
+
+def test_e57_colours_only_when_every_scan_has_them(tmp_path):
+    a, _ = sphere(300, seed=24)
+    rgb = np.full((150, 3), 7, np.uint8)
+    c = read_point_cloud(write_e57(tmp_path / "m.e57", [{"xyz": a[:150], "rgb": rgb}, {"xyz": a[150:]}]))
+    assert len(c.points) == 300 and c.colors is None and c.scans == 2
