@@ -17,7 +17,9 @@ subpackages: ``points``, ``normals``, ``kernel``, ``fit``, ``surface``, ``pipeli
 (``docs/architecture.md``); ``train`` holds the training of the learned kernel.
 """
 
+import sys as _sys
 from importlib import import_module
+from types import ModuleType as _ModuleType
 
 from .errors import (
     Cancelled,
@@ -66,6 +68,26 @@ def __getattr__(name):
 
 def __dir__():
     return sorted(set(globals()) | set(_LAZY))
+
+
+class _Package(_ModuleType):
+    """``nkf_model.fit`` is a function and also the name of a subpackage. Importing the subpackage
+    sets the package's attribute ``fit`` to it (``import nkf_model.fit.augment``, which the pipeline
+    does), after which ``nkf_model.fit(...)`` raised "'module' object is not callable". A data
+    descriptor on the module's class wins over that attribute: ``nkf_model.fit`` is always the
+    function; ``from nkf_model.fit.solve import ...`` and ``import nkf_model.fit.augment`` still work
+    (through ``sys.modules``)."""
+
+    @property
+    def fit(self):
+        return import_module(".pipeline.reconstruct", __name__).fit
+
+    @fit.setter
+    def fit(self, value):  # the import system recording the subpackage: it stays in sys.modules
+        pass
+
+
+_sys.modules[__name__].__class__ = _Package
 
 
 __all__ = [
