@@ -271,16 +271,19 @@ def test_text_read_in_chunks_gives_the_same(tmp_path):
 # ---- PCD -------------------------------------------------------------------------------------
 
 
-def test_lzf_round_trip_and_overlapping_references():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_lzf_round_trip_and_overlapping_references(compiled):
     # A literal run "ab" then a reference of length 6 at distance 2: "abababab".
-    assert lzf_decompress(bytes([1, ord("a"), ord("b"), (4 << 5) | 0, 1]), 8) == b"abababab"
+    assert lzf_decompress(bytes([1, ord("a"), ord("b"), (4 << 5) | 0, 1]), 8, compiled) == b"abababab"
     rng = np.random.default_rng(0)
     data = np.repeat(rng.integers(0, 5, 3000).astype(np.uint8), 3).tobytes() + bytes(1000) + rng.bytes(500)
     comp = lzf_compress(data)
     assert len(comp) < 0.8 * len(data)  # back references were used
-    assert lzf_decompress(comp, len(data)) == data
+    assert lzf_decompress(comp, len(data), compiled) == data
     with pytest.raises(ValueError):
-        lzf_decompress(comp[:-5], len(data))
+        lzf_decompress(comp[:-5], len(data), compiled)
+    with pytest.raises(ValueError, match="reference out of range"):
+        lzf_decompress(bytes([(1 << 5) | 0, 5]), 3, compiled)  # refers before the start
 
 
 @pytest.mark.parametrize("kind", ["ascii", "binary", "binary_compressed"])

