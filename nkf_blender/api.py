@@ -99,7 +99,8 @@ def reconstruct_object(
         ``"auto"``: the object's normals when it has them, else estimated; ``"given"``: the
         object must have normals; ``"estimate"``: estimated even when it has some.
     orientation : {"outward", "up", "viewpoint"}
-        Which way estimated normals point; ``"viewpoint"``: towards the scene camera.
+        Which way estimated normals point; ``"viewpoint"``: towards the scanner-position empties of
+        an imported E57 scan (its children marked ``nkf_scanner``), else the scene camera.
     trim : float, optional
         For open scans: cut the surface farther than this many point spacings from every point
         (``nkf_model.options.SCAN_TRIM`` = 4 suits scans); ``None`` keeps the closed surface.
