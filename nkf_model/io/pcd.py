@@ -24,16 +24,20 @@ TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I"
 NORMALS = (("normal_x", "normal_y", "normal_z"), ("nx", "ny", "nz"))
 
 
+COMPILED_ABOVE = 8 << 20  # bytes: about 2.5 s in Python, where loading numba starts to pay
 LZF_ERRORS = {-1: "literal run past the end", -2: "reference past the end", -3: "reference out of range"}
 
 
 def lzf_decompress(data: bytes, size: int, compiled: bool | None = None) -> bytearray:
     """Decompress an LZF block (liblzf's format, as PCL writes it) of ``size`` bytes.
 
-    Uses the numba loop of :mod:`._lzf_kernels` when numba is installed (``compiled=None``; its
-    first use compiles it, about 2 s, then cached), else this Python loop. On a compressible
-    organised 640x480 scan: 3.3 MB/s in Python, 269 MB/s compiled. Raises ``ValueError`` on a
-    corrupt or short block."""
+    ``compiled=None`` uses the numba loop of :mod:`._lzf_kernels` for blocks of ``COMPILED_ABOVE``
+    bytes or more when numba is installed, else this Python loop. On a compressible organised
+    640x480 scan: 3.3 MB/s in Python, 269 MB/s compiled; loading numba and the cached loop costs
+    about 2-4 s and 117 MB once per process, more than the Python loop takes for small blocks.
+    Raises ``ValueError`` on a corrupt or short block."""
+    if compiled is None:
+        compiled = None if size >= COMPILED_ABOVE else False
     if compiled is None or compiled:
         try:
             from ._lzf_kernels import lzf_into
