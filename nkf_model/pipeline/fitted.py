@@ -28,6 +28,7 @@ from ..errors import InvalidParameterError, NoSurfaceError
 from ..fit.partition_of_unity import PoURefit, fit_pou, patch_spacing
 from ..fit.refit import GramEigen
 from ..fit.solve import KernelFunction, SolveInfo, solve_dense, solve_falkon
+from ..kernel.neural_spline import homogeneous, split_unit
 from ..normals.estimate import median_spacing
 from ..options import Options
 from ..points.farthest_point import farthest_point_sample
@@ -117,6 +118,9 @@ class _Shared:
         self.blend: BlendedField | None = None
         self.blend_q: np.ndarray | None = None
         self.blend_w: np.ndarray | None = None
+        # K(calibration points, centres) (Q, 2N), made by factorize() for the dense solver: the far
+        # field's scale for a new lambda is then one product instead of a kernel sum.
+        self.blend_k: np.ndarray | None = None
         self.lock = threading.Lock()
 
 
@@ -192,6 +196,7 @@ class Fit:
         total += 0 if p.coarse_a is None else p.coarse_a.nbytes
         total += 0 if s.gram is None else s.gram.nbytes
         total += 0 if s.eigen is None else s.eigen.nbytes
+        total += 0 if s.blend_k is None else s.blend_k.nbytes
         if s.pou is not None:
             fn = s.pou.fn
             total += fn.cu.nbytes + fn.beta.nbytes + fn.start.nbytes + fn.count.nbytes + s.pou.nbytes
@@ -281,8 +286,11 @@ class Fit:
         with s.lock, threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
             if self._prep.kind == "dense" and s.eigen is None and s.gram is not None:
                 poll()
-                s.eigen = GramEigen.of(s.gram)
+                eigen = GramEigen.of(s.gram)
                 s.gram = None
+                if self._prep.far_field and s.blend is not None:
+                    s.blend_k = self._calibration_matrix(poll)
+                s.eigen = eigen
             elif self._prep.kind == "pou" and s.pou is not None:
                 s.pou.factorize(cancel_poll=poll)
         return self.factorized
@@ -345,16 +353,37 @@ class Fit:
             if s.blend is None:
                 s.blend = blend
             return blend
+        q = self._calibration_q(track.cancel_poll)
+        new = copy.copy(s.blend)
+        new.fn = fn
+        if not len(q):
+            new.scale = 1.0
+        elif s.blend_k is not None and s.eigen is not None and eng is p.engine:
+            new.scale = winding_scale(s.blend_w, s.blend_k @ fn.alpha)  # factorised: the same sum, reordered
+        else:
+            new.scale = winding_scale(s.blend_w, fn(q, cancel_poll=track.cancel_poll))
+        return new
+
+    def _calibration_q(self, cancel_poll):
+        """The far field's calibration points (those of ``BlendedField``) and their winding numbers."""
+        p, s = self._prep, self._shared
         if s.blend_q is None:
             q = np.random.default_rng(p.options.seed).uniform(-GRID_HALF, GRID_HALF, (BLEND_CALIBRATION, 3))
             d, _ = s.blend.tree.query(q, distance_upper_bound=s.blend.start)
             s.blend_q = q[~np.isfinite(d)]
-            s.blend_w = s.blend.far(s.blend_q, track.cancel_poll) if len(s.blend_q) else None
-        new = copy.copy(s.blend)
-        new.fn = fn
-        q = s.blend_q
-        new.scale = winding_scale(s.blend_w, fn(q, cancel_poll=track.cancel_poll)) if len(q) else 1.0
-        return new
+            s.blend_w = s.blend.far(s.blend_q, cancel_poll) if len(s.blend_q) else None
+        return s.blend_q
+
+    def _calibration_matrix(self, cancel_poll) -> np.ndarray | None:
+        """``K(q, a)`` (Q, 2N) for the calibration points ``q`` and the dense solve's centres."""
+        p = self._prep
+        q = self._calibration_q(cancel_poll)
+        if not len(q):
+            return None
+        phi = None if p.phi is None else p.phi(q)
+        qu, qr = split_unit(homogeneous(q, phi))
+        cu, cr = split_unit(p.a)
+        return p.engine.kernel_matrix(qu, qr, cu, cr, cancel_poll=cancel_poll)
 
     def _mesh(self, track: Tracker, opts: Options, t_start: float) -> Mesh:
         p = self._prep
