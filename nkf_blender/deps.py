@@ -99,6 +99,59 @@ def refresh() -> DepStatus:
     return check()
 
 
+# What a reconstruction really imports, beyond the package names: a package can be found and still
+# fail to import (a partly unpacked wheel, a library missing, another version first on sys.path).
+IMPORTS = {
+    "nkf_model": "nkf_model.pipeline.reconstruct",
+    "scipy": "scipy.linalg, scipy.spatial, scipy.sparse.csgraph",
+    "skimage": "skimage.measure",
+    "threadpoolctl": "threadpoolctl",
+    "numba": "numba",
+    "safetensors": "safetensors.numpy",
+}
+
+_VERIFY = """
+import importlib, json, sys
+sys.path[:] = json.loads(sys.argv[1])
+out = {}
+for name, mods in json.loads(sys.argv[2]).items():
+    try:
+        for mod in mods.split(", "):
+            importlib.import_module(mod)
+    except BaseException as exc:
+        out[name] = (type(exc).__name__ + ": " + str(exc)).splitlines()[0]
+print(json.dumps(out))
+"""
+
+
+def verify(names=None, timeout: float = 120.0) -> dict[str, str]:
+    """Import the packages for real, in a separate Python process with this one's ``sys.path`` (so a
+    broken binary cannot take Blender down); returns ``{import name: one line}`` for each failure,
+    ``{}`` when all import. ``names``: keys of :data:`IMPORTS` (default: all of them)."""
+    import json
+    import subprocess
+
+    wanted = {n: IMPORTS.get(n, n) for n in (names or IMPORTS)}
+    try:
+        run = subprocess.run(
+            [sys.executable, "-c", _VERIFY, json.dumps(sys.path), json.dumps(wanted)],
+            capture_output=True, text=True, timeout=timeout,
+        )
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return {n: f"the check could not run ({type(exc).__name__})" for n in wanted}
+    if run.returncode != 0:  # the interpreter itself died: a crashing binary; find which
+        if len(wanted) > 1:
+            out: dict[str, str] = {}
+            for n in wanted:
+                out.update(verify([n], timeout))
+            return out
+        return {n: f"importing it crashed Python (exit status {run.returncode})" for n in wanted}
+    try:
+        return json.loads(run.stdout.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        return {n: "the check printed nothing readable" for n in wanted}
+
+
 # Folders this module appended to sys.path, so they can be taken off again.
 _added: list[str] = []
 

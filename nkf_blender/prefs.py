@@ -226,6 +226,11 @@ class NKF_OT_check_dependencies(bpy.types.Operator):
     def execute(self, context):
         apply_paths(get_prefs(context))
         st = deps.status()
+        if st.ready:  # found: now import them for real, in a separate process (a broken one is named)
+            broken = deps.verify([n for n in deps.IMPORTS if st.found.get(n)])
+            if broken:
+                self.report({"WARNING"}, "NKF: cannot import " + "; ".join(f"{n} ({w})" for n, w in broken.items()))
+                return {"FINISHED"}
         msg = st.message() or "all Python packages found"
         self.report({"INFO"} if st.ready else {"WARNING"}, f"NKF: {msg}")
         return {"FINISHED"}
