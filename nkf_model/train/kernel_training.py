@@ -525,8 +525,8 @@ class Trainer:
             self.log(f"commit: {out} is not in a git repository ({exc})")
             return False
         rel = os.path.relpath(out, top)
-        msg = (f"Training run {rel}: step {self.step}, {self.cpu / 3600:.2f} CPU hours, best held-out mean IoU "
-               f"{self.best:.4f} (checkpoint, log, curves)")
+        best = f"best held-out mean IoU {self.best:.4f}" if self.best >= 0 else "not validated yet"
+        msg = f"Training run {rel}: step {self.step}, {self.cpu / 3600:.2f} CPU hours, {best} (checkpoint, log, curves)"
         for _ in range(12):
             if (Path(top) / ".git" / "index.lock").exists():
                 time.sleep(5)
