@@ -81,6 +81,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="cap the surface where it meets the grid's bounds, for a watertight mesh")
     s.add_argument("--no-colors", action="store_true",
                    help="do not carry the points' red green blue onto the mesh (carried when present)")
+    s.add_argument("--keep-outliers", action="store_true",
+                   help="keep points far sparser than the surface around them (removed by default from "
+                        "20,000 points up: scanner mixed pixels, stray returns)")
     reduce_to = SETTING["reduce_to"].default
     s.add_argument("--reduce-to", type=int, default=reduce_to, metavar="N",
                    help=f"reduce larger inputs to at most N points by voxel-grid averaging "
@@ -145,7 +148,8 @@ def options_from_args(args) -> Options:
         max_points=args.max_points, seed=args.seed, normals_mode=args.normals, orientation=args.orient,
         trim=args.trim if args.trim is not None else (SCAN_TRIM if args.scan else None),
         min_piece=args.min_piece if args.min_piece is not None else (SCAN_MIN_PIECE if args.scan else 0.0),
-        close=args.close, reduce_to=None if args.reduce_to == 0 else args.reduce_to, solver=args.solver,
+        close=args.close, outliers=not args.keep_outliers,
+        reduce_to=None if args.reduce_to == 0 else args.reduce_to, solver=args.solver,
         memory_budget=None if args.memory_budget is None else args.memory_budget * 2**30, weights=args.weights,
     )
 

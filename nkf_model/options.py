@@ -180,6 +180,9 @@ SETTINGS: tuple[Setting, ...] = (
             low=0.0, high=1.0, high_open=True, soft_high=0.1),
     Setting("close", "bool", False, "Watertight",
             "Cap the surface where it runs into the bounding box (plus 5 %), so that the mesh is closed"),
+    Setting("outliers", "bool", True, "Remove Outliers",
+            "Drop points far sparser than the surface around them (scanner mixed pixels, stray returns) "
+            "from inputs of 20,000 points or more"),
     Setting("reduce_to", "int", 300_000, "Reduce To",
             "Reduce larger inputs to at most this many points by voxel-grid averaging; None never reduces",
             optional=True, low=1000),
@@ -259,6 +262,7 @@ class Options:
     trim: float | None = SETTING["trim"].default
     min_piece: float = SETTING["min_piece"].default
     close: bool = SETTING["close"].default
+    outliers: bool = SETTING["outliers"].default
     reduce_to: int | None = SETTING["reduce_to"].default
     solver: str = SETTING["solver"].default
     max_centres: int = SETTING["max_centres"].default

@@ -33,6 +33,7 @@ from ..normals.estimate import median_spacing
 from ..options import Options
 from ..points.farthest_point import farthest_point_sample
 from ..points.normalise import GRID_HALF, Normalisation
+from ..points.outliers import OUTLIER_MIN_POINTS
 from ..points.winding import BlendedField, winding_scale
 from ..surface.colors import transfer_colors
 from ..surface.evaluate import evaluate_sparse
@@ -254,7 +255,7 @@ class Fit:
         opts = self.options.replace(**changes) if changes else self.options
         t0 = time.perf_counter()
         with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
-            track = Tracker(progress, cancel, stages=mesh_stages(opts, self._prep.rgb is not None))
+            track = Tracker(progress, cancel, stages=mesh_stages(opts, self._prep.rgb is not None, len(self._prep.x)))
             out = self._mesh(track, opts, t0)
         out.stats["fit_timings"] = dict(self.timings)
         return out
@@ -407,11 +408,13 @@ class Fit:
                 "point out of the surface, or lower lambda"
             )
         trim_info = None
-        if trim is not None or min_piece > 0:
+        if trim is not None or min_piece > 0 or removes_floaters(opts, len(x)):
             track.begin("clean")
             spacing = median_spacing(x)
+            min_area = FLOATER_AREA * spacing**2 if removes_floaters(opts, len(x)) else 0.0
             faces, kept, trim_info = clean_scan_mesh(
-                unit_v, faces, x, spacing, trim=trim, min_piece=min_piece, floor=2.0 * GRID_HALF / resolution
+                unit_v, faces, x, spacing, trim=trim, min_piece=min_piece, floor=2.0 * GRID_HALF / resolution,
+                min_area=min_area,
             )
             unit_v = unit_v[kept]
             trim_info.threshold *= norm.scale  # report it in the input's units
@@ -448,6 +451,7 @@ class Fit:
             "triangles": int(len(faces)),
             "reduction": info["reduction"],
             "subset": info["subset"],
+            "outliers": info.get("outliers"),
             "normals": info["normals"],
             "orientation": info["orientation"],
             "pou": None if sol.pou_info is None else dict(sol.pou_info.__dict__),
@@ -480,10 +484,16 @@ class _Solution:
     engine: Any
 
 
-def mesh_stages(opts: Options, colors: bool) -> list[str]:
-    """The stages :meth:`Fit.mesh` runs with ``opts``."""
+def removes_floaters(opts: Options, n_points: int) -> bool:
+    """Whether :meth:`Fit.mesh` drops pieces smaller than :data:`FLOATER_AREA` point spacings squared:
+    with ``outliers`` on, for inputs of :data:`~nkf_model.points.outliers.OUTLIER_MIN_POINTS` or more."""
+    return bool(opts.outliers) and n_points >= OUTLIER_MIN_POINTS
+
+
+def mesh_stages(opts: Options, colors: bool, n_points: int = 0) -> list[str]:
+    """The stages :meth:`Fit.mesh` runs with ``opts`` on ``n_points`` fitted points."""
     stages = ["evaluate", "mesh"]
-    stages += ["clean"] if (opts.trim is not None or opts.min_piece > 0) else []
+    stages += ["clean"] if (opts.trim is not None or opts.min_piece > 0 or removes_floaters(opts, n_points)) else []
     return stages + (["colors"] if colors else [])
 
 
@@ -500,3 +510,8 @@ BLAS_THREADS = 1
 # nkf_model.pipeline.reconstruct for how they were chosen.
 FAR_START = 1.5
 FAR_END = 3.0
+# Dense inputs (outliers on, OUTLIER_MIN_POINTS points or more) lose every piece of surface smaller
+# than this many point spacings squared: floaters that wrongly oriented patches of estimated normals
+# leave beside the surface. On a simulated range scan of geocentral__cat_head (73,000 points) the
+# 238 pieces beside the main one each had at most 0.03 % of the area (about 11 spacings squared).
+FLOATER_AREA = 400.0

@@ -24,6 +24,7 @@ from ..options import SETTING, Options
 from ..points.clean import clean_points
 from ..points.noise import estimate_noise, noise_lam
 from ..points.normalise import GRID_HALF, Normalisation
+from ..points.outliers import OUTLIER_MIN_POINTS, sparse_outliers
 from ..points.subset import random_subset
 from ..points.voxel_reduce import voxel_for_count, voxel_reduce
 from ..surface.colors import as_rgb8
@@ -267,7 +268,7 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     stages = (["subsample"] if subset else []) + ["normalise"] + (["reduce"] if plan.reduced else [])
     stages += ["normals"] if estimate_n else []
     stages += ["augment"] + (["features"] if model is not None else []) + ["solve"]
-    stages += mesh_stages(opts, colors is not None) if mesh else []
+    stages += mesh_stages(opts, colors is not None, n_in) if mesh else []
     track = Tracker(progress, cancel, stages=stages)
     subset_info = None
     if subset:
@@ -284,6 +285,15 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     norm = Normalisation.fit(clean.points)
     x = norm.to_unit(clean.points)
     nrm = clean.normals
+    outlier_info = None
+    if opts.outliers and len(x) >= OUTLIER_MIN_POINTS:
+        bad = sparse_outliers(x)
+        if bad.any():
+            keep_pts = ~bad
+            x = x[keep_pts]
+            nrm = None if nrm is None else nrm[keep_pts]
+            rgb = None if rgb is None else rgb[keep_pts]
+        outlier_info = {"removed": int(bad.sum()), "of": int(len(bad))}
     reduction = None
     if plan.reduced and len(x) > reduce_to:
         track.begin("reduce")
@@ -362,6 +372,7 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
         "warnings": clean.warnings(),
         "eps": eps_used,
         "reduction": reduction,
+        "outliers": outlier_info,
         "subset": subset_info,
         "normals": "estimated" if estimate_n else "given",
         "orientation": None if normal_info is None else {

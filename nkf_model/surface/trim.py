@@ -31,6 +31,9 @@ class TrimInfo:
         Connected pieces before the size filter, and how many it removed.
     small_piece_faces : int
         Triangles removed with those pieces.
+    floaters_removed : int
+        Pieces removed for an area under ``min_area`` (floaters), with their triangles in
+        ``small_piece_faces``.
     """
 
     threshold: float = 0.0
@@ -38,6 +41,7 @@ class TrimInfo:
     pieces_before: int = 0
     pieces_removed: int = 0
     small_piece_faces: int = 0
+    floaters_removed: int = 0
 
 
 def far_vertices(vertices: np.ndarray, points: np.ndarray, threshold: float, tree=None) -> np.ndarray:
@@ -97,7 +101,8 @@ def compact(vertices: np.ndarray, faces: np.ndarray, keep_faces: np.ndarray):
     return remap[faces], np.flatnonzero(used)
 
 
-def clean_scan_mesh(vertices, faces, points, spacing: float, trim=None, min_piece: float = 0.0, floor: float = 0.0):
+def clean_scan_mesh(vertices, faces, points, spacing: float, trim=None, min_piece: float = 0.0, floor: float = 0.0,
+                    min_area: float = 0.0):
     """Trim and filter a mesh; returns ``(faces (F', 3), kept vertex indices (V',), TrimInfo)``.
 
     Parameters
@@ -116,6 +121,8 @@ def clean_scan_mesh(vertices, faces, points, spacing: float, trim=None, min_piec
     floor : float
         Smallest trimming distance (the caller passes one grid cell: the surface cannot follow the
         points closer than that).
+    min_area : float
+        Also remove pieces with less than this area, in the mesh's units squared (0 keeps all).
     """
     info = TrimInfo()
     keep = np.ones(len(faces), dtype=bool)
@@ -131,5 +138,16 @@ def clean_scan_mesh(vertices, faces, points, spacing: float, trim=None, min_piec
         keep[idx[~mask]] = False
     elif len(faces):
         info.pieces_before = piece_labels(len(vertices), faces[keep])[0]
+    if min_area > 0 and keep.any():
+        idx = np.flatnonzero(keep)
+        count, label = piece_labels(len(vertices), faces[idx])
+        area = np.bincount(label, weights=face_areas(vertices, faces[idx]), minlength=count)
+        small = area < min_area
+        if small.all():  # never remove every piece: keep the largest
+            small[np.argmax(area)] = False
+        info.floaters_removed = int(small.sum())
+        drop = small[label]
+        info.small_piece_faces += int(drop.sum())
+        keep[idx[drop]] = False
     new_faces, kept = compact(vertices, faces, keep)
     return new_faces, kept, info
