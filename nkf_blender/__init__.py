@@ -60,6 +60,8 @@ def _start_prepare():
     if prepare.status().state == prepare.IDLE:
         if not deps.status().ready or not prepare.start(prefs.prepare_folder()):
             return None
+    if prepare.running() and runner.running_count():
+        prepare.cancel()  # a reconstruction compiles what it needs; never two threads in numba's pool
     ops._tag_redraw(bpy.context)
     return 0.5 if prepare.running() else None
 

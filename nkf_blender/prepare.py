@@ -6,7 +6,9 @@ add-on is enabled in the UI, :func:`start` runs :func:`nkf_model.pipeline.warmup
 worker thread; the panel shows "Preparing the solver (first time only)" with its progress. A marker
 file in the extension's user folder remembers that it is done for this version of ``nkf_model``,
 numba and Python, so later Blender sessions skip it. A reconstruction started meanwhile simply
-waits for the compiler (numba's compile lock) and is then as fast as a warm one.
+waits for the compiler (numba's compile lock); the add-on then cancels the preparation
+(:func:`cancel`), so that two threads do not run numba's parallel loops at once (its ``workqueue``
+threading layer, the one used where OpenMP is missing, aborts the process on concurrent launches).
 
 Faults end in :func:`status` (``state`` "failed" with one line in ``error``), never in an
 exception on Blender's side: a read-only folder (no marker; numba falls back to its user-wide
@@ -120,6 +122,11 @@ def wait(timeout: float | None = None) -> bool:
         t.join(timeout)
         return not t.is_alive()
     return True
+
+
+def cancel() -> None:
+    """Ask the preparation to stop at its next check (within about half a second), without waiting."""
+    _cancel.set()
 
 
 def stop(timeout: float = 30.0) -> bool:

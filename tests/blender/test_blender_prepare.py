@@ -97,3 +97,27 @@ def test_disabling_the_add_on_meanwhile_stops_it(bpy_module, addon, held_warm_up
         assert not [t for t in threading.enumerate() if t.name == prepare.THREAD_NAME and t.is_alive()]
     finally:
         addon_utils.enable(pkg, default_set=True)
+
+
+def test_a_reconstruction_started_meanwhile_cancels_it(scene, bpy_module, held_warm_up, tmp_path):
+    # numba's workqueue threading layer (where OpenMP is missing) aborts on parallel loops entered
+    # from two threads at once, so the preparation gives way to the user's job.
+    from blender_helpers import fibonacci_sphere, import_ply, write_ply
+
+    from nkf_model.options import Options
+
+    bpy = bpy_module
+    prepare, runner = ext("prepare"), ext("runner")
+    pts, nrm = fibonacci_sphere(400, 1.0)
+    src = import_ply(bpy, write_ply(tmp_path / "ball.ply", pts, nrm))
+    assert prepare.start(tmp_path, force=True)
+    assert ext()._start_prepare() == 0.5  # the timer keeps polling while it runs
+    key = runner.start(bpy.context, src, Options(method="splines", resolution=64, device="cpu"))
+    try:
+        ext()._start_prepare()  # the timer's next tick sees the job
+        assert prepare.wait(10) and prepare.status().state == "cancelled"
+        assert ext()._start_prepare() is None  # ended: the timer stops
+        assert not (tmp_path / prepare.MARKER).exists()  # it runs again next session
+    finally:
+        runner.cancel(key, wait=True)
+        runner.finish(bpy.context, key)
