@@ -155,13 +155,29 @@ def _canon(name: str) -> str:
     return re.sub(r"[-_.]+", "_", name).lower()
 
 
+def wheel_ok(path: Path) -> bool:
+    """True when ``path`` is a whole wheel: a readable zip whose every member's CRC checks and that
+    has a ``.dist-info/RECORD``. A partial download would otherwise go into the zip, and Blender
+    would fail to unpack it at install time with a traceback (seen with bpy 5.0.1)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            return z.testzip() is None and any(n.endswith(".dist-info/RECORD") for n in z.namelist())
+    except Exception:  # BadZipFile, EOFError, zlib.error, OSError: damaged either way
+        return False
+
+
 def _cached(folder: Path, pin: str) -> Path | None:
-    """The wheel for ``name==version`` in ``folder``, if there."""
+    """The wheel for ``name==version`` in ``folder``, if there and whole (a damaged one is deleted,
+    so that it is downloaded again)."""
     name, version = pin.split("==")
     for w in sorted(folder.glob("*.whl")):
         parts = w.name.split("-")
         if _canon(parts[0]) == _canon(name) and parts[1] == version:
-            return w
+            if wheel_ok(w):
+                return w
+            w.unlink()
     return None
 
 
