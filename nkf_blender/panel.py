@@ -201,6 +201,7 @@ def draw_panel(layout, context) -> None:
     sub.prop(s, "trim")
     sub.prop(s, "min_piece")
     col.prop(s, "use_close")
+    col.prop(s, "use_outliers")
     col.prop(s, "use_colors")
     col.prop(s, "use_evaluated")
     col.prop(s, "use_new_object")

@@ -138,6 +138,9 @@ def annotations(default_method: str, update=None) -> dict:
             precision=4, step=0.1, description=description("min_piece") + "; used while Scan is on", **upd,
         ),
         "use_close": BoolProperty(name=close.label, default=close.default, description=description("close"), **upd),
+        "use_outliers": BoolProperty(
+            name=SETTING["outliers"].label, default=SETTING["outliers"].default, description=description("outliers"),
+        ),
         "use_colors": BoolProperty(
             name="Colours", default=True,
             description="Carry the points' colour attribute (e.g. 'Col' from a PLY) onto the mesh",
@@ -161,7 +164,7 @@ def annotations(default_method: str, update=None) -> dict:
 
 PROPERTY_NAMES = (
     "method", "regularization", "resolution", "max_points", "device",
-    "normals_mode", "orientation", "use_scan", "trim", "min_piece", "use_close", "use_colors",
+    "normals_mode", "orientation", "use_scan", "trim", "min_piece", "use_close", "use_outliers", "use_colors",
     "use_new_object", "use_evaluated",
 )
 LAMBDA_TOOLTIP = (
@@ -259,6 +262,7 @@ def to_options(props, memory_budget: int | None = None) -> Options:
         trim=float(props.trim) if scan else None,
         min_piece=float(props.min_piece) if scan else 0.0,
         close=bool(props.use_close),
+        outliers=bool(props.use_outliers),
         memory_budget=memory_budget,
     )
 
