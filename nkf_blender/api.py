@@ -76,9 +76,15 @@ def reconstruct_object(
     close: bool = False,
     colors: bool = True,
     memory_budget_gb: float | None = None,
+    new_object: bool = False,
+    evaluated: bool = True,
     context=None,
 ) -> bpy.types.Object:
-    """Reconstruct a surface from ``obj``'s points; return the new mesh object.
+    """Reconstruct a surface from ``obj``'s points; return the result object.
+
+    A source that already has a result (a mesh object whose ``nkf_source_ref`` custom property is
+    ``obj``) gets that result updated in place, unless ``new_object``; a kept fit of the same points
+    and fit settings is reused (only a new lambda or resolution: a re-solve or a re-mesh).
 
     Parameters
     ----------
@@ -114,14 +120,20 @@ def reconstruct_object(
     memory_budget_gb : float, optional
         Refuse runs estimated above this many GiB; default: the add-on preference, else 60 % of
         the memory (at most 16 GiB).
+    new_object : bool
+        Add a new result object even when ``obj`` has one.
+    evaluated : bool
+        Read the points as evaluated (modifiers and Geometry Nodes applied); ``False``: the original data.
     context : bpy.types.Context, optional
         Default ``bpy.context``; its view layer gets the new object selected and active.
 
     Returns
     -------
     bpy.types.Object
-        Named ``<obj.name>_nkf``, in ``obj``'s collection, with ``obj``'s world matrix; its mesh
-        is in ``obj``'s local coordinates, so the two line up exactly. Smooth shaded.
+        A new one named ``<obj.name>_nkf``, in ``obj``'s collection, with ``obj``'s world matrix (or
+        the updated result, which keeps its name, collection, materials and modifiers); its mesh is
+        in ``obj``'s local coordinates, so the two line up exactly. Smooth shaded. Custom properties
+        record how it was made (``nkf_method``, ``nkf_lambda``, ``nkf_resolution``, ...).
 
     Raises
     ------
@@ -149,7 +161,8 @@ def reconstruct_object(
             int(float(memory_budget_gb) * prefs.GIB) if memory_budget_gb is not None else prefs.memory_budget(context)
         ),
     )
-    ob = runner.run_sync(context, obj, options, colors=bool(colors))
+    ob = runner.run_sync(context, obj, options, colors=bool(colors), new_object=bool(new_object),
+                         evaluated=bool(evaluated))
     if ob is None:  # only a cancel event can get here, and nothing sets one in this path
         raise UserError("the reconstruction was cancelled")
     return ob

@@ -104,6 +104,11 @@ def test_deleted_result_then_api_gives_a_new_result(sphere, bpy_module):
     assert again.name == "sphere_nkf" and again["nkf_source_ref"] == sphere
     # the only mesh without users is the one the script's remove() left behind
     assert [m.name for m in bpy.data.meshes if m.users == 0] == [left]
+    # the function updates the result in place too, unless new_object
+    assert api.reconstruct_object(sphere, method="splines", resolution=40) == again
+    assert again["nkf_resolution"] == 40
+    other = api.reconstruct_object(sphere, method="splines", resolution=40, new_object=True)
+    assert other != again and other["nkf_source_ref"] == sphere
 
 
 def test_source_edited_or_deleted_forgets_the_fit(sphere, bpy_module):
