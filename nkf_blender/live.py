@@ -135,7 +135,8 @@ def tick():
         opts = settings.to_options(s, prefs.memory_budget(context))
         if not full:
             opts = opts.replace(resolution=min(opts.resolution, PREVIEW_RESOLUTION))
-        STATE.key = runner.start(context, src, opts, colors=s.use_colors, evaluated=s.use_evaluated, target=res)
+        STATE.key = runner.start(context, src, opts, colors=s.use_colors, evaluated=s.use_evaluated, target=res,
+                                 require_kept=True)
     except UserError as exc:
         STATE.message = str(exc)
         STATE.dirty = False

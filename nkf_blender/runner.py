@@ -109,7 +109,7 @@ def record(key: int) -> LastRun | None:
 
 def prepare(
     context, obj, options: Options, on_progress=None, *, colors: bool = True, new_object: bool = False,
-    evaluated: bool = True,
+    evaluated: bool = True, require_kept: bool = False,
 ) -> tuple[ReconstructJob, Active]:
     """Check everything that can be checked now and read the points; the job is not started.
 
@@ -131,6 +131,11 @@ def prepare(
     viewpoints = viewpoint(context, obj) if estimate_normals and options.orientation == "viewpoint" else None
     check_budget(len(src.points), options, estimate_normals, src.colors is not None)
     fit_key, kept = _kept_fit(obj, options, src.points, src.normals, src.colors, viewpoints)
+    if require_kept and kept is None:
+        raise UserError(
+            f"no kept fit of '{obj.name}' for these settings (its points or a setting the fit depends on "
+            "changed): press Reconstruct once"
+        )
     job = ReconstructJob(
         src.points, src.normals, options, on_progress=on_progress, colors=src.colors, viewpoints=viewpoints,
         fit=kept, keep_fit=kept is None,
@@ -211,13 +216,15 @@ def check_budget(count: int, options: Options, estimate_normals: bool, colors: b
 
 
 def start(context, obj, options: Options, *, colors: bool = True, new_object: bool = False,
-          evaluated: bool = True, target=None) -> int:
+          evaluated: bool = True, target=None, require_kept: bool = False) -> int:
     """Start a job for ``obj`` on a worker thread; return its key for :func:`poll` and :func:`finish`.
 
     ``new_object``: add a new result even when ``obj`` has one (else its result is updated in
     place); ``target``: the result object to update; ``evaluated``: read the evaluated geometry
-    (modifiers and Geometry Nodes applied) instead of the original data."""
-    job, act = prepare(context, obj, options, colors=colors, new_object=new_object, evaluated=evaluated)
+    (modifiers and Geometry Nodes applied) instead of the original data; ``require_kept``: refuse
+    (UserError) unless a kept fit of these points and settings can be reused (Live)."""
+    job, act = prepare(context, obj, options, colors=colors, new_object=new_object, evaluated=evaluated,
+                       require_kept=require_kept)
     act.target_uid = None if target is None else key_of(target)
     _active[act.source_uid] = act
     job.start()

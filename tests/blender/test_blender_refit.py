@@ -215,6 +215,12 @@ def test_live_previews_then_updates_in_place(sphere, bpy_module):
     assert res["nkf_resolution"] == 96 and res["nkf_lambda"] == pytest.approx(1e-5)
     assert len(bpy.data.objects) == n_obj and bpy.context.active_object == res
     assert ext("runner").record(ext("runner").key_of(sphere)).reused
+    # a setting the fit depends on changed: Live says so and never starts a whole new fit
+    s.max_points = 100
+    s.resolution = 72
+    assert live.tick() is None and live.STATE.key is None
+    assert "no kept fit" in live.STATE.message and res["nkf_resolution"] == 96
+    s.max_points = 0
     # the result deleted while Live is on: nothing to update, one message, no crash
     bpy.data.objects.remove(res)
     bpy.context.view_layer.objects.active = sphere
