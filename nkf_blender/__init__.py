@@ -26,7 +26,7 @@ from . import batch, deps, importer, live, methods, ops, panel, prefs, prepare, 
 
 _CLASSES = (
     settings.NKF_PG_settings, *prefs.CLASSES, *ops.CLASSES, *panel.CLASSES, *importer.CLASSES, *preset_menu.CLASSES,
-    *batch.CLASSES,
+    *batch.CLASSES, *live.CLASSES,
 )
 
 

@@ -6,7 +6,8 @@ timer. While changes keep coming (a slider being dragged: the last one less than
 ago) the timer runs previews at Resolution at most :data:`PREVIEW_RESOLUTION`; once they stop it runs
 the full mesh. Every run is an ordinary job of :mod:`nkf_blender.runner` on a worker thread that
 reuses the source's kept fit (:mod:`nkf_blender.fitcache`) and updates the result in place, so the
-UI never waits and Cancel (or turning Live off) stops it. A full run made stale by a newer change is
+UI never waits and Esc (:class:`NKF_OT_live_escape`, a modal watcher started with each update in a
+window), Cancel or turning Live off stops it. A full run made stale by a newer change is
 cancelled. Live acts on the active object when it is a result (its source is re-run) or a source
 that has a result and a kept fit; it never starts a whole new fit by itself.
 
@@ -44,6 +45,7 @@ class _State:
         self.message = ""  # why Live did nothing, or the last error
         self.last_seconds = 0.0
         self.last_preview = False
+        self.watching = False  # the Esc watcher (NKF_OT_live_escape) is running
 
 
 STATE = _State()
@@ -144,7 +146,51 @@ def tick():
     STATE.full = full
     if full:
         STATE.dirty = False
+    _watch_escape(context)
     return POLL
+
+
+class NKF_OT_live_escape(bpy.types.Operator):
+    """Esc stops the Live update in flight (started by Live with each update; passes every other event on)"""
+
+    bl_idname = "nkf.live_escape"
+    bl_label = "Stop Live Update"
+    bl_options = {"INTERNAL"}
+
+    def invoke(self, context, event):
+        STATE.watching = True
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if STATE.key is None:
+            STATE.watching = False
+            return {"FINISHED", "PASS_THROUGH"}
+        if event.type == "ESC" and event.value == "PRESS":
+            runner.cancel(STATE.key)
+            STATE.dirty = False
+            STATE.message = "Live update stopped (Esc); change a setting to update again"
+            STATE.watching = False
+            return {"FINISHED"}
+        return {"PASS_THROUGH"}
+
+
+def _watch_escape(context) -> None:
+    """Start the Esc watcher in the first window (never headless: no windows, no events)."""
+    if bpy.app.background or STATE.watching:
+        return
+    wm = getattr(context, "window_manager", None)
+    windows = list(getattr(wm, "windows", []))
+    if not windows:
+        return
+    try:
+        with context.temp_override(window=windows[0]):
+            bpy.ops.nkf.live_escape("INVOKE_DEFAULT")
+    except RuntimeError:
+        STATE.watching = False
+
+
+CLASSES = (NKF_OT_live_escape,)
 
 
 def _undo_push(message: str) -> None:

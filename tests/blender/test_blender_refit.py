@@ -332,3 +332,27 @@ def test_file_loaded_during_a_job_cancels_it_and_adds_nothing(sphere, bpy_module
     assert runner.poll(key) == "cancelled" and runner.running_count() == 0
     assert runner.finish(bpy.context, key) is None
     assert len(bpy.data.objects) == 0 and len(fitcache.CACHE) == 0
+
+
+def test_escape_stops_a_live_update(sphere, bpy_module):
+    from nkf_model.options import Options
+
+    bpy = bpy_module
+    live, runner = ext("live"), ext("runner")
+    assert hasattr(bpy.types, "NKF_OT_live_escape")
+    key = runner.start(bpy.context, sphere, Options(method="splines", resolution=128, device="cpu"))
+    live.STATE.key, live.STATE.dirty = key, True
+
+    class Event:
+        type, value = "MOUSEMOVE", "NOTHING"
+
+    modal = live.NKF_OT_live_escape.modal  # what the window's event loop calls (no events headless)
+    assert modal(None, bpy.context, Event) == {"PASS_THROUGH"}
+    Event.type, Event.value = "ESC", "PRESS"
+    assert modal(None, bpy.context, Event) == {"FINISHED"}
+    assert not live.STATE.dirty and "Esc" in live.STATE.message
+    assert runner.cancel(key, wait=True) and runner.poll(key) == "cancelled"
+    n = len(bpy.data.objects)
+    live.STATE.key = None
+    assert runner.finish(bpy.context, key) is None and len(bpy.data.objects) == n
+    assert modal(None, bpy.context, Event) == {"FINISHED", "PASS_THROUGH"}  # nothing in flight: it ends
