@@ -132,7 +132,7 @@ def test_a_bad_setting_is_one_clear_error_in_the_panel_and_the_operator(bpy_modu
 def test_python_function_builds_the_same_options(bpy_module, ball, monkeypatch):
     runner = ext("runner")
     seen = []
-    monkeypatch.setattr(runner, "run_sync", lambda context, obj, options, colors: seen.append((options, colors)))
+    monkeypatch.setattr(runner, "run_sync", lambda context, obj, options, colors, **kw: seen.append((options, colors)))
     with pytest.raises(ext("errors").UserError, match="cancelled"):  # the stand-in builds nothing
         ext("api").reconstruct_object(
             ball, method="Neural Splines", regularization=1e-9, resolution=40, max_points=0, device="gpu",
