@@ -1,4 +1,5 @@
-"""Compiled depth-buffer rasteriser for the synthetic scanner (see :mod:`benchmarks.scenes`)."""
+"""Compiled depth-buffer rasteriser for the synthetic scanners (:mod:`benchmarks.scenes`,
+:mod:`benchmarks.range_scans`)."""
 
 from __future__ import annotations
 
@@ -9,25 +10,29 @@ import numpy as np
 
 
 @nb.njit(nogil=True, cache=True)
-def rasterise_depth(cam, size, near):  # pragma: no cover - compiled
-    """Depth buffer of triangles seen by a 90-degree pinhole camera.
+def rasterise_faces(cam, size, near):  # pragma: no cover - compiled
+    """Nearest triangle seen through each pixel of a pinhole camera.
 
     Parameters
     ----------
     cam : (F, 3, 3) float64
-        Triangle corners in camera coordinates ``(a, b, w)``: ``w`` along the viewing axis (> 0
-        in front), ``a`` and ``b`` across it. The image covers ``|a / w| <= 1``, ``|b / w| <= 1``.
+        Triangle corners in camera coordinates ``(a, b, w)``: ``w`` along the viewing axis (> 0 in
+        front), ``a`` and ``b`` already divided by the tangent of the half field of view, so that the
+        image covers ``|a / w| <= 1``, ``|b / w| <= 1``.
     size : int
         Pixels per side.
     near : float
-        Triangles with a corner nearer than this are skipped (the caller keeps surfaces farther).
+        Triangles with a corner nearer than this are skipped.
 
     Returns
     -------
-    (size, size) float64
+    depth : (size, size) float64
         Smallest ``w`` seen through each pixel (``inf`` where nothing is seen).
+    face : (size, size) int64
+        Index of that triangle (-1 where nothing is seen).
     """
     zbuf = np.full((size, size), np.inf)
+    fbuf = np.full((size, size), -1, dtype=np.int64)
     half = 0.5 * size
     for f in range(cam.shape[0]):
         w0 = cam[f, 0, 2]
@@ -65,7 +70,8 @@ def rasterise_depth(cam, size, near):  # pragma: no cover - compiled
                 w = 1.0 / (l0 * iw0 + l1 * iw1 + l2 * iw2)  # perspective-correct depth
                 if w < zbuf[i, j]:
                     zbuf[i, j] = w
-    return zbuf
+                    fbuf[i, j] = f
+    return zbuf, fbuf
 
 
 @nb.njit(nogil=True, cache=True)

@@ -2,7 +2,7 @@
 
 :func:`range_scan` places ``views`` virtual scanners around an object as a turntable would (a ring
 at one or two elevations above the object, none below it), renders a range image from each
-(:func:`benchmarks._range_kernels.rasterise_faces`: one point per pixel, where the pixel's ray first
+(:func:`benchmarks._raster_kernels.rasterise_faces`: one point per pixel, where the pixel's ray first
 meets the surface, so occlusion and the point density of a real range image follow), and then
 adds what real scans carry:
 
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _range_kernels as rk
+from . import _raster_kernels as rk
 
 GRAZING_LIMIT = 80.0  # degrees between the ray and the surface normal beyond which nothing is returned
 EDGE_JUMP = 0.02  # a neighbouring pixel this much deeper (of the diagonal), or empty, marks a depth edge

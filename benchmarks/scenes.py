@@ -193,7 +193,7 @@ def visible_from(scene: Scene, points: np.ndarray, normals: np.ndarray, viewpoin
     seen = np.zeros(len(points), dtype=bool)
     for a, b, c in _AXES:
         cam = np.stack([rel_v @ a, rel_v @ b, rel_v @ c], axis=-1)[scene.faces]
-        zbuf = rk.rasterise_depth(np.ascontiguousarray(cam), size, NEAR)
+        zbuf = rk.rasterise_faces(np.ascontiguousarray(cam), size, NEAR)[0]
         pa, pb, pw = rel_p @ a, rel_p @ b, rel_p @ c
         inside = (pw > NEAR) & (np.abs(pa) <= pw) & (np.abs(pb) <= pw)
         depth = rk.lookup_depth(zbuf, pa, pb, pw)
