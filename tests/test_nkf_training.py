@@ -12,7 +12,15 @@ from nkf_helpers import TINY, box_mesh, icosphere
 from nkf_model.kernel.feature_net import FeatureNet
 from nkf_model.train import metrics
 from nkf_model.train.examples import AugmentSpec, CacheSpec, make_example, samples_from_mesh, validation_example
-from nkf_model.train.kernel_training import FitSpec, example_field, example_loss, field_iou, load_config
+from nkf_model.train.kernel_training import (
+    CHECKPOINT,
+    FitSpec,
+    example_field,
+    example_loss,
+    field_iou,
+    load_config,
+    read_checkpoint,
+)
 
 SMALL_CACHE = CacheSpec(n_surface=3000, n_volume=1024, n_near=1024)
 SMALL_AUG = AugmentSpec(n_min=120, n_max=200, n_mode=150, n_volume=256, n_near=256, n_surface=128)
@@ -153,12 +161,12 @@ def test_train_cli_stops_checkpoints_and_resumes(tmp_path):
     )
     out = tmp_path / "run"
     assert main(["train", "--config", str(cfg), "--out", str(out), "--max-steps", "2", "--quiet"]) == 0
-    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    state = read_checkpoint(out / CHECKPOINT)
     assert state["step"] == 2
     assert main(["train", "--config", str(cfg), "--out", str(out), "--resume", "--stop-after", "0", "--quiet"]) == 0
-    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 2  # no time: no step
+    assert read_checkpoint(out / CHECKPOINT)["step"] == 2  # no time: no step
     assert main(["train", "--config", str(cfg), "--out", str(out), "--resume", "--quiet"]) == 0
-    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 4
+    assert read_checkpoint(out / CHECKPOINT)["step"] == 4
     log = (out / "train.log").read_text()
     assert "resumed at step 2" in log and "stopped at step 4" in log
     load_weights(out / "nkf.safetensors")  # the best weights so far load as weights

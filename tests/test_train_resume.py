@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from nkf_model.kernel.feature_net import FeatureNet
-from nkf_model.train.kernel_training import Trainer, load_config
+from nkf_model.train.kernel_training import CHECKPOINT, Trainer, load_config, read_checkpoint, write_checkpoint
 
 
 def _config(tmp_path: Path, workers: int) -> Path:
@@ -40,14 +40,14 @@ def test_worker_and_resume_give_the_same_run_as_one_session(tmp_path):
     assert main(["train", "--config", str(_config(tmp_path, 1)), "--out", str(a), "--quiet"]) == 0
     cfg0 = str(_config(tmp_path, 0))
     assert main(["train", "--config", cfg0, "--out", str(b), "--max-steps", "2", "--quiet"]) == 0
-    assert torch.load(b / "checkpoint.pt", weights_only=True)["step"] == 2
+    assert read_checkpoint(b / CHECKPOINT)["step"] == 2
     with open(b / "metrics.csv", "a") as fh:  # a step logged after the checkpoint, before the session ended
         fh.write("train,3,1.0,1.0,0.5,0.4,0.1,0.001,0,,,\n")
     assert main(["train", "--config", cfg0, "--out", str(b), "--resume", "--quiet"]) == 0
     steps = [int(r.split(",")[1]) for r in (b / "metrics.csv").read_text().splitlines() if r.startswith("train,")]
     assert steps == [1, 2, 3, 4]
-    sa = torch.load(a / "checkpoint.pt", weights_only=True)
-    sb = torch.load(b / "checkpoint.pt", weights_only=True)
+    sa = read_checkpoint(a / CHECKPOINT)
+    sb = read_checkpoint(b / CHECKPOINT)
     assert sa["step"] == sb["step"] == 4
     assert sa["cpu"] > 0 and sb["cpu"] > 0
     for k in sa["model"]:
@@ -80,14 +80,14 @@ def test_commit_takes_only_the_run_folder(tmp_path):
     _git(repo, "add", "other.txt")
     out = repo / "training" / "run"
     out.mkdir(parents=True)
-    (out / "checkpoint.pt").write_bytes(b"abc")
+    (out / CHECKPOINT).write_bytes(b"abc")
     (out / "train.log").write_text("log\n")
     logged = []
     tr = types.SimpleNamespace(out=out, step=7, cpu=3600.0, best=0.5, log=logged.append)
     assert Trainer.commit(tr) is True
     files = _git(repo, "show", "--name-only", "--format=%s", "HEAD").split("\n")
     assert files[0].startswith("Training run training/run: step 7, 1.00 CPU hours")
-    assert sorted(f for f in files[1:] if f) == ["training/run/checkpoint.pt", "training/run/train.log"]
+    assert sorted(f for f in files[1:] if f) == [f"training/run/{CHECKPOINT}", "training/run/train.log"]
     assert _git(repo, "diff", "--cached", "--name-only").split() == ["other.txt"]  # still staged, not committed
     # Nothing new: git commit has nothing to do, which is reported, not raised.
     assert Trainer.commit(tr) is False and "commit failed" in logged[-1]
@@ -115,3 +115,31 @@ def test_a_checkpoint_accepts_settings_added_later_only_at_their_defaults():
     removed = json.loads(json.dumps(cfg))
     removed["data"]["retired_setting"] = 1
     assert not config_matches(removed, cfg)
+
+
+def test_checkpoint_is_safetensors_and_round_trips_the_optimizer(tmp_path):
+    """No pickle: the checkpoint is a safetensors file whose model and Adam state come back exactly."""
+    torch.manual_seed(0)
+    net = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    for _ in range(3):
+        opt.zero_grad()
+        net(torch.randn(4, 3)).square().sum().backward()
+        opt.step()
+    path = tmp_path / CHECKPOINT
+    write_checkpoint(path, {"model": net.state_dict(), "optimizer": opt.state_dict(), "step": 3, "best": 0.5,
+                            "elapsed": 1.5, "cpu": 2.0, "config": "{}"})
+    assert path.read_bytes()[8:9] == b"{"  # a safetensors header (8-byte length, then JSON), not a pickle
+    state = read_checkpoint(path)
+    assert (state["step"], state["best"], state["elapsed"], state["cpu"], state["config"]) == (3, 0.5, 1.5, 2.0, "{}")
+    net2 = torch.nn.Linear(3, 2)
+    opt2 = torch.optim.Adam(net2.parameters(), lr=1e-3)
+    net2.load_state_dict(state["model"])
+    opt2.load_state_dict(state["optimizer"])
+    for k, v in net.state_dict().items():
+        assert torch.equal(v, net2.state_dict()[k])
+    a, b = opt.state_dict(), opt2.state_dict()
+    assert a["param_groups"] == b["param_groups"]
+    for k in a["state"]:
+        for name, v in a["state"][k].items():
+            assert torch.equal(v, b["state"][k][name]), name

@@ -10,15 +10,15 @@ through the solve) and minimises::
 
 Runs are seeded: the examples of step ``k`` come from ``numpy.random.default_rng([seed, k])``, so a
 run resumed from a checkpoint sees the same data as an uninterrupted one. Checkpoints (every
-``checkpoint_every`` steps, and at the end) hold only tensors and numbers and are read back with
-``torch.load(weights_only=True)``. The run writes into ``--out``:
+``checkpoint_every`` steps, and at the end) are safetensors files (no pickle) read back with
+:func:`read_checkpoint`. The run writes into ``--out``:
 
 * ``train.log``: a plain log (settings, losses, validation), appended across resumes;
 * ``metrics.csv``: one row per step (loss) and per validation;
 * ``curves.png``: training loss and validation IoU against steps (needs matplotlib, the ``train``
   extra);
 * ``nkf.safetensors``: the weights with the best validation IoU, with the config in the metadata;
-* ``checkpoint.pt``: the latest state for ``--resume``.
+* ``checkpoint.safetensors``: the latest state for ``--resume`` (:func:`write_checkpoint`).
 
 Validation uses meshes held out of the ``train`` split (``holdout`` of them, never trained on), so
 the corpus's ``val`` split stays untouched for the benchmark. Each validation example is fitted
@@ -124,6 +124,59 @@ class TrainConfig:
             "procedural": asdict(self.procedural),
             "validation": list(self.validation),
         }
+
+
+CHECKPOINT = "checkpoint.safetensors"
+_SCALARS = ("step", "best", "elapsed", "cpu", "config")
+
+
+def write_checkpoint(path, state: dict) -> None:
+    """Write a training state as safetensors (no pickle): ``state["model"]`` (a state dict) as
+    ``model.<name>``, the optimizer's per-parameter tensors as ``optimizer.<index>.<name>``, and its
+    param groups, its non-tensor per-parameter entries and the numbers ``step``, ``best``,
+    ``elapsed``, ``cpu``, ``config`` as JSON in the metadata."""
+    import torch
+    from safetensors.torch import save_file
+
+    tensors = {f"model.{k}": v.detach().contiguous() for k, v in state["model"].items()}
+    opt = state["optimizer"]
+    extra = {}
+    for idx, entries in opt["state"].items():
+        for name, v in entries.items():
+            if isinstance(v, torch.Tensor):
+                tensors[f"optimizer.{idx}.{name}"] = v.detach().contiguous()
+            else:
+                extra.setdefault(str(idx), {})[name] = v
+    meta = {k: json.dumps(state[k]) for k in _SCALARS if k in state}
+    meta["param_groups"] = json.dumps(opt["param_groups"])
+    meta["optimizer_extra"] = json.dumps(extra)
+    save_file(tensors, str(path), metadata=meta)
+
+
+def read_checkpoint(path, device="cpu") -> dict:
+    """The state :func:`write_checkpoint` wrote: ``model`` and ``optimizer`` state dicts as
+    ``torch.nn.Module.load_state_dict`` and ``torch.optim.Optimizer.load_state_dict`` take them, and
+    the numbers."""
+    from safetensors import safe_open
+
+    model, opt_state = {}, {}
+    with safe_open(str(path), framework="pt", device=str(device)) as fh:
+        meta = fh.metadata() or {}
+        for key in fh.keys():
+            kind, _, rest = key.partition(".")
+            if kind == "model":
+                model[rest] = fh.get_tensor(key)
+            else:
+                idx, _, name = rest.partition(".")
+                opt_state.setdefault(int(idx), {})[name] = fh.get_tensor(key)
+    for idx, entries in json.loads(meta.get("optimizer_extra", "{}")).items():
+        opt_state.setdefault(int(idx), {}).update(entries)
+    state = {k: json.loads(meta[k]) for k in _SCALARS if k in meta}
+    state["model"] = model
+    groups = [{k: tuple(v) if isinstance(v, list) and k != "params" else v for k, v in g.items()}
+              for g in json.loads(meta.get("param_groups", "[]"))]  # JSON made the tuples (betas) lists
+    state["optimizer"] = {"state": dict(sorted(opt_state.items())), "param_groups": groups}
+    return state
 
 
 def config_matches(stored: dict, current: dict) -> bool:
@@ -374,12 +427,11 @@ class Trainer:
 
     # -- checkpoints ---------------------------------------------------------------------
     def checkpoint_path(self) -> Path:
-        return self.out / "checkpoint.pt"
+        return self.out / CHECKPOINT
 
     def save_checkpoint(self) -> None:
-        import torch
-
-        state = {
+        tmp = self.checkpoint_path().with_suffix(".tmp")
+        write_checkpoint(tmp, {
             "model": self.net.state_dict(),
             "optimizer": self.opt.state_dict(),
             "step": self.step,
@@ -387,18 +439,14 @@ class Trainer:
             "elapsed": self.elapsed,
             "cpu": self.cpu,
             "config": json.dumps(self.cfg.to_dict(), sort_keys=True),
-        }
-        tmp = self.checkpoint_path().with_suffix(".tmp")
-        torch.save(state, tmp)
+        })
         tmp.replace(self.checkpoint_path())
 
     def load_checkpoint(self) -> bool:
-        import torch
-
         path = self.checkpoint_path()
         if not path.exists():
             return False
-        state = torch.load(path, map_location=self.device, weights_only=True)
+        state = read_checkpoint(path, device=self.device)
         if not config_matches(json.loads(state["config"]), self.cfg.to_dict()):
             raise ValueError(
                 f"{path} was written with a different config; start a new --out folder or restore the config"
@@ -752,10 +800,10 @@ def main(args) -> int:
     except (OSError, ValueError, TypeError) as exc:  # tomllib.TOMLDecodeError is a ValueError
         raise NKFInputError(f"training config {args.config}: {exc}") from None
     out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
-    if (out / "checkpoint.pt").exists() and not args.resume:
+    if (out / CHECKPOINT).exists() and not args.resume:
         raise NKFInputError(f"{out} already holds a run; pass --resume to continue it, or choose another --out")
-    if args.resume and not (out / "checkpoint.pt").exists():
-        raise NKFInputError(f"--resume: {out} holds no checkpoint.pt to resume from")
+    if args.resume and not (out / CHECKPOINT).exists():
+        raise NKFInputError(f"--resume: {out} holds no {CHECKPOINT} to resume from")
     tr = Trainer(cfg, out, progress=not args.quiet)
     try:
         stop = None if getattr(args, "stop_after", None) is None else 60.0 * args.stop_after
