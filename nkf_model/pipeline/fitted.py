@@ -408,10 +408,11 @@ class Fit:
                 "point out of the surface, or lower lambda"
             )
         trim_info = None
-        if trim is not None or min_piece > 0 or removes_floaters(opts, len(x)):
+        floaters = removes_floaters(opts, len(x))
+        if trim is not None or min_piece > 0 or floaters:
             track.begin("clean")
             spacing = median_spacing(x)
-            min_area = FLOATER_AREA * spacing**2 if removes_floaters(opts, len(x)) else 0.0
+            min_area = FLOATER_AREA * spacing**2 if floaters else 0.0
             faces, kept, trim_info = clean_scan_mesh(
                 unit_v, faces, x, spacing, trim=trim, min_piece=min_piece, floor=2.0 * GRID_HALF / resolution,
                 min_area=min_area,
