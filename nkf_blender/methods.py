@@ -7,7 +7,7 @@ needs nothing beyond the required packages. Two answers:
   weights, so it imports PyTorch, about a second). Used when the real answer is needed: the Python
   API's default method. Cached until :func:`refresh`.
 * :func:`quick_status` imports nothing heavy: the real answer when it is cached, else whether the
-  core ships its weights (:data:`nkf_model.options.DEFAULT_METHOD`) and whether safetensors (for
+  core ships its weights (:data:`nkf_model.options.SHIPPED_WEIGHTS`) and whether safetensors (for
   the weights; PyTorch is optional) can be found (``importlib.util.find_spec``, through
   :mod:`nkf_blender.deps`). Used at
   registration (the operator's default method) and by the panel, so that enabling the add-on and
@@ -21,7 +21,7 @@ import threading
 
 import numpy as np
 
-from nkf_model.options import DEFAULT_METHOD
+from nkf_model.options import DEFAULT_METHOD, SHIPPED_WEIGHTS
 
 from . import deps
 
@@ -91,7 +91,7 @@ def quick_status(method: str) -> tuple[bool, str]:
         return True, ""
     if method != "nkf":
         return False, f"unknown method {method!r}"
-    if DEFAULT_METHOD != "nkf":
+    if not SHIPPED_WEIGHTS.is_file():
         return False, "this installation has no default weights for method 'nkf'; use Neural Splines"
     st = deps.status()
     # PyTorch is not needed: without it the feature network runs in NumPy (same features).
@@ -105,8 +105,10 @@ def quick_status(method: str) -> tuple[bool, str]:
 
 
 def quick_default() -> str:
-    """The Blender enum id of the default method from :func:`quick_status` (nothing heavy imported)."""
-    return "NKF" if quick_status("nkf")[0] else "SPLINES"
+    """The Blender enum id of the default method (nothing heavy imported): ``"NKF"`` only when the core
+    makes it the default (:data:`nkf_model.options.DEFAULT_METHOD`: its weights passed the gate on
+    held-out sources) and :func:`quick_status` says it can run here."""
+    return "NKF" if DEFAULT_METHOD == "nkf" and quick_status("nkf")[0] else "SPLINES"
 
 
 def nkf_available() -> tuple[bool, str]:
@@ -115,8 +117,9 @@ def nkf_available() -> tuple[bool, str]:
 
 
 def default_method() -> str:
-    """The Blender enum id of the default method: ``"NKF"`` when it can run here, else ``"SPLINES"``."""
-    return "NKF" if nkf_available()[0] else "SPLINES"
+    """The Blender enum id of the default method: ``"NKF"`` when the core makes it the default
+    (:data:`nkf_model.options.DEFAULT_METHOD`) and it can run here, else ``"SPLINES"``."""
+    return "NKF" if DEFAULT_METHOD == "nkf" and nkf_available()[0] else "SPLINES"
 
 
 def refresh() -> None:

@@ -182,6 +182,9 @@ def draw_panel(layout, context) -> None:
             sub = col.column()
             sub.alert = True
             wrapped(sub, f"NKF unavailable: {why}", icon="ERROR", width=WRAP)
+        elif ok and methods.DEFAULT_METHOD != "nkf":
+            wrapped(col, "Not the default: on shapes unlike its training data the learned kernel has not "
+                    "yet beaten Neural Splines by the gate's margin (docs/nkf.md)", icon="INFO", width=WRAP)
     col.prop(s, "lambda_text", text="Lambda")
     col.prop(s, "lambda_log", text="log10 Lambda", slider=True)
     col.prop(s, "resolution")

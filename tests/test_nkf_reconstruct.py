@@ -12,6 +12,7 @@ from nkf_model.cli import main
 from nkf_model.errors import WeightsError
 from nkf_model.io.files import read_mesh
 from nkf_model.kernel.weights import has_default_weights
+from nkf_model.options import DEFAULT_METHOD_REASON, SETTING, SHIPPED_WEIGHTS, gate_passed, weights_gate
 from nkf_model.pipeline.reconstruct import DEFAULT_METHOD
 from nkf_model.train.metrics import chamfer_l1, sample_surface
 
@@ -69,8 +70,12 @@ def test_bad_weights_raise_a_clear_error(tmp_path, sphere500):
         nkf_model.reconstruct(*sphere500, method="nkf", weights=tmp_path / "missing.safetensors")
 
 
-def test_default_method_follows_the_shipped_weights():
-    assert DEFAULT_METHOD == ("nkf" if has_default_weights() else "splines")
+def test_default_method_follows_the_shipped_weights_gate():
+    # nkf is the default only for shipped weights that passed the gate on held-out sources (issue 23).
+    passed = has_default_weights() and gate_passed(weights_gate(SHIPPED_WEIGHTS))
+    assert DEFAULT_METHOD == ("nkf" if passed else "splines")
+    assert SETTING["method"].default == DEFAULT_METHOD
+    assert DEFAULT_METHOD_REASON in SETTING["method"].description
 
 
 @pytest.mark.skipif(not has_default_weights(), reason="this checkout ships no trained weights")

@@ -166,6 +166,11 @@ def test_nkf_method_shows_why_it_is_unavailable(bpy_module, ball):
     layout = draw(bpy)
     if available:
         assert not layout.alerts()
+        # NKF runs here but is not the default until its weights pass the gate on held-out sources:
+        # the panel says why Neural Splines is.
+        from nkf_model.options import DEFAULT_METHOD
+        said = "".join(layout.joined().split())
+        assert ("Notthedefault:" in said and "NeuralSplines" in said) == (DEFAULT_METHOD != "nkf")
     else:
         # The panel wraps long alerts (a path may be cut inside a word): compare without the breaks.
         assert "".join(f"NKF unavailable: {why}".split()) == "".join(" ".join(layout.alerts()).split())
