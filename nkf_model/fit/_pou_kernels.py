@@ -70,6 +70,55 @@ def gram_general(u, r, diag):  # pragma: no cover - compiled
     return G
 
 
+@nb.njit(inline="always", **_OPTS)
+def _sum12(qu, i, cu, beta, j0, j1):
+    """sum_j beta[j] g(|qu[i] - c[j]|^2) over centres j0..j1 of 12-D unit vectors (``cu`` by columns,
+    (12, C)): the learned kernel's ``[x : phi : 1]``. One pass over the centres that LLVM vectorises;
+    the generic loop over a run-time dimension in :func:`pou_sum` did not (5x slower)."""
+    q0 = qu[i, 0]
+    q1 = qu[i, 1]
+    q2 = qu[i, 2]
+    q3 = qu[i, 3]
+    q4 = qu[i, 4]
+    q5 = qu[i, 5]
+    q6 = qu[i, 6]
+    q7 = qu[i, 7]
+    q8 = qu[i, 8]
+    q9 = qu[i, 9]
+    q10 = qu[i, 10]
+    q11 = qu[i, 11]
+    r0 = cu[0]
+    r1 = cu[1]
+    r2 = cu[2]
+    r3 = cu[3]
+    r4 = cu[4]
+    r5 = cu[5]
+    r6 = cu[6]
+    r7 = cu[7]
+    r8 = cu[8]
+    r9 = cu[9]
+    r10 = cu[10]
+    r11 = cu[11]
+    s = 0.0
+    for j in range(j0, j1):
+        t0 = q0 - r0[j]
+        t1 = q1 - r1[j]
+        t2 = q2 - r2[j]
+        t3 = q3 - r3[j]
+        t4 = q4 - r4[j]
+        t5 = q5 - r5[j]
+        t6 = q6 - r6[j]
+        t7 = q7 - r7[j]
+        t8 = q8 - r8[j]
+        t9 = q9 - r9[j]
+        t10 = q10 - r10[j]
+        t11 = q11 - r11[j]
+        d2 = (t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3 + t4 * t4 + t5 * t5
+              + t6 * t6 + t7 * t7 + t8 * t8 + t9 * t9 + t10 * t10 + t11 * t11)
+        s += beta[j] * _g(d2)
+    return s
+
+
 @nb.njit(inline="always")
 def _trilinear(grid, lo, step, x0, x1, x2):
     n = grid.shape[0] - 1
@@ -137,6 +186,8 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step, 
                     if d == 4:
                         acc = _sum4(qu[i, 0], qu[i, 1], qu[i, 2], qu[i, 3], cu[0], cu[1], cu[2], cu[3], beta,
                                     s0, s0 + m, acute)
+                    elif d == 12:
+                        acc = _sum12(qu, i, cu, beta, s0, s0 + m)
                     else:
                         for j in range(s0, s0 + m):
                             s = 0.0
