@@ -110,3 +110,27 @@ def test_cancel_a_remesh_and_a_new_lambda():
     with pytest.raises(Cancelled):
         f.with_lam(1e-6, cancel=stop)
     assert same(f.mesh(), nkf_model.reconstruct(p, nrm, method="splines", resolution=32))
+
+
+def test_pou_new_lambda_keeps_the_coarse_fit_and_solves_only_the_patches():
+    # The coarse fit's lambda is COARSE_LAM whatever the fit's: its 48^3 grid is made once per fit.
+    p, nrm = torus(1200)
+    settings = dict(method="splines", solver="pou", resolution=40)
+    f = nkf_model.fit(p, nrm, lam=1e-10, **settings)
+    floor = f.stats["pou"]["patch_lam"]  # the patches' lambda: the noise floor (about 1e-4 here)
+    lam = 3 * floor
+    fresh = nkf_model.fit(p, nrm, lam=lam, **settings)
+    g = f.with_lam(lam)
+    assert g.stats["pou"]["patch_lam"] == fresh.stats["pou"]["patch_lam"] == lam
+    assert g._sol.fn.f0_grid is f._sol.fn.f0_grid
+    assert np.array_equal(fresh._sol.fn.f0_grid, f._sol.fn.f0_grid)
+    assert np.array_equal(g._sol.fn.beta, fresh._sol.fn.beta)
+    assert not np.array_equal(g._sol.fn.beta, f._sol.fn.beta)  # the patches were solved again
+    fresh_mesh = fresh.mesh()
+    assert same(g.mesh(), fresh_mesh)
+    f.factorize()
+    assert close_to(f.with_lam(lam).mesh(), fresh_mesh)
+    # under the noise floor a new lambda leaves the function as it is
+    under = f.with_lam(floor / 2)
+    assert under._sol.fn is f._sol.fn and under.stats["pou"]["patch_lam"] == floor
+    assert same(under.mesh(), nkf_model.reconstruct(p, nrm, lam=floor / 2, **settings))

@@ -12,9 +12,9 @@ function is::
 
 whose weights sum to one everywhere (:mod:`nkf_model.fit._pou_kernels`). Patches with fewer than
 :data:`MIN_PATCH_POINTS` points use a coarse global fit ``f0`` instead (an exact solve on
-:data:`COARSE_POINTS` points picked by farthest-point sampling, sampled once on a 48^3 grid and
-interpolated), which gives the field far from the data; given the normals, its sign there is the
-point cloud's winding number's (:mod:`nkf_model.points.winding`). Cost: the local solves are O(N P^2) in
+:data:`COARSE_POINTS` points picked by farthest-point sampling with lambda :data:`COARSE_LAM`,
+sampled once on a 48^3 grid and interpolated), which gives the field far from the data; given the
+normals, its sign there is the point cloud's winding number's (:mod:`nkf_model.points.winding`). Cost: the local solves are O(N P^2) in
 total for P points per patch, and every evaluation sums over the centres of 8 patches (about 16 P
 kernel evaluations), whatever N is.
 """
@@ -45,6 +45,14 @@ POINTS_PER_PATCH = 50  # target median of points per patch
 MAX_PATCH_POINTS = 4 * POINTS_PER_PATCH  # larger patches are randomly thinned to this
 MIN_PATCH_POINTS = 8  # patches with fewer points use the coarse global fit
 COARSE_POINTS = 1000  # points of the coarse global fit
+# Regularisation per constraint of the coarse fit, whatever the fit's lambda: the default lambda
+# (options.SETTING["lam"], so a run with it is unchanged). The coarse fit only stands in far from the
+# data, where no patch has points, and (with normals) gives way there to the winding number's sign;
+# lambda's job, how closely the surface follows the points, is the patches' (``patch_lam``, which
+# noisy input already raises above lambda). Kept fixed, a new lambda does not touch the coarse fit
+# or its 48^3 grid (117,649 nodes x 2,000 centres, 2 s of a 3 s solve at 10,000 points): a kept fit
+# (PoURefit.refit) re-solves only the patches.
+COARSE_LAM = 1e-10
 COARSE_GRID = 48  # cells per side of the grid the coarse fit is sampled on
 # Nodes of that grid nearer the data than this many of its cells keep the coarse fit's sign: there
 # the winding number is at its 1/2 crossing, and noisy dense input pushes it either way
@@ -121,7 +129,7 @@ class PoUFunction:
     """
 
     def __init__(self, lo, h, dims, start, count, cu, beta, coarse: KernelFunction, engine: Engine, features=None,
-                 far: FarField | None = None, cancel_poll: CancelPoll = None, far_nodes=None):
+                 far: FarField | None = None, cancel_poll: CancelPoll = None, far_nodes=None, f0_grid=None):
         self.lo, self.h, self.dims = float(lo), float(h), int(dims)
         self.start, self.count = start, count
         self.cu = np.ascontiguousarray(cu)  # (D, C)
@@ -134,11 +142,16 @@ class PoUFunction:
         # of the input, nkf_model.points.winding) overrides its sign where the two disagree, except at
         # nodes within FAR_NEAR_CELLS cells of the input points. ``far_nodes``: the winding numbers
         # and the near-data mask at the nodes from an earlier function of the same points (a refit).
+        # ``f0_grid``: the sampled coarse fit of an earlier function with the same coarse fit (a
+        # refit: the coarse fit's lambda is COARSE_LAM whatever the fit's), used as it is.
+        self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
+        self.far_nodes = far_nodes
+        if f0_grid is not None:
+            self.f0_grid = f0_grid
+            return
         g = np.linspace(-GRID_HALF, GRID_HALF, COARSE_GRID + 1)
         nodes = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
-        self.f0_lo, self.f0_step = -GRID_HALF, 2 * GRID_HALF / COARSE_GRID
         f0 = coarse(nodes, cancel_poll=cancel_poll)
-        self.far_nodes = far_nodes
         if far is not None and far_nodes is None:
             w = far(nodes, cancel_poll)
             d, _ = cKDTree(far.points).query(nodes, distance_upper_bound=FAR_NEAR_CELLS * self.f0_step, workers=-1)
@@ -216,6 +229,7 @@ def fit_pou(
     coarse_a: np.ndarray | None = None,
     normals: np.ndarray | None = None,
     patch_lam: float | None = None,
+    coarse_lam: float = COARSE_LAM,
     points_per_patch: int = POINTS_PER_PATCH,
     coarse_points: int = COARSE_POINTS,
     seed: int = 0,
@@ -235,10 +249,12 @@ def fit_pou(
     y : (2N,) float64
         Labels (+1 outer, -1 inner).
     lam : float
-        Regularisation per constraint, as in the global solve (the coarse fit uses it).
+        Regularisation per constraint, as in the global solve: the local solves' default.
     patch_lam : float, optional
         Regularisation per constraint of the local solves (default ``lam``); larger values smooth
         noisy input (see :func:`nkf_model.points.noise.noise_lam`).
+    coarse_lam : float
+        Regularisation per constraint of the coarse fit (default :data:`COARSE_LAM`).
     engine : Engine
         Evaluates the blended function (the local solves always run on the CPU).
     features : callable, optional
@@ -277,7 +293,7 @@ def fit_pou(
     # The coarse fit reuses the given constraints of the chosen points (same eps, same features).
     rows_c = rows = np.concatenate([sub, sub + n])
     ac, yc = (a if coarse_a is None else coarse_a)[rows], y[rows]
-    alpha_c, _ = solve_dense(ac, yc, lam, engine, cancel_poll=cancel_poll)
+    alpha_c, _ = solve_dense(ac, yc, float(coarse_lam), engine, cancel_poll=cancel_poll)
     coarse = KernelFunction(ac, alpha_c, engine, features=features if coarse_a is None else None)
     if step is not None:
         step(0.05)
@@ -372,11 +388,12 @@ def _single_thread_blas():
 class PoURefit:
     """What a new lambda needs from a fitted partition of unity (:func:`fit_pou` with ``keep``).
 
-    The patches' layout and members, the coarse fit's points and the winding numbers at the coarse
-    grid's nodes are kept; :meth:`refit` solves the coarse fit and the patches again with a new
-    lambda, by Cholesky as :func:`fit_pou` does (the same function to the bit), or, after
-    :meth:`factorize`, from each patch's eigendecomposition (:class:`nkf_model.fit.refit.GramEigen`):
-    two matrix-vector products per patch.
+    The patches' layout and members are kept, and the coarse fit with its sampled grid: its lambda
+    is :data:`COARSE_LAM` whatever the fit's, so a new lambda leaves it as it is. :meth:`refit`
+    solves the patches again with a new lambda, by Cholesky as :func:`fit_pou` does (the same
+    function to the bit), or, after :meth:`factorize`, from each patch's eigendecomposition
+    (:class:`nkf_model.fit.refit.GramEigen`): two matrix-vector products per patch. When the
+    patches' lambda does not change either (noisy input: the noise floor), the function is this one.
 
     Attributes
     ----------
@@ -391,7 +408,6 @@ class PoURefit:
     def __init__(self, *, fn: PoUFunction, info: PoUInfo, a, y, coarse_rows, coarse_a, patches, lam: float):
         self.fn, self.info, self.a, self.y = fn, info, a, y
         self.coarse_rows, self.coarse_a, self.patches, self.lam = coarse_rows, coarse_a, patches, lam
-        self.coarse_eigen = None
         self.patch_eigen = None  # list of (GramEigen, norms r (m,))
 
     @property
@@ -400,42 +416,32 @@ class PoURefit:
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the factorisations (the rest is shared with the fit)."""
-        total = 0 if self.coarse_eigen is None else self.coarse_eigen.nbytes
+        """Bytes held by the factorisations and the coarse grid (the rest is shared with the fit)."""
+        total = int(self.fn.f0_grid.nbytes)
         for eig, r in self.patch_eigen or ():
             total += eig.nbytes + r.nbytes
         return total
 
     def factorize(self, cancel_poll: CancelPoll = None) -> None:
-        """Eigendecompose the coarse fit's and every patch's Gram matrix (once)."""
+        """Eigendecompose every patch's Gram matrix (once)."""
         from .refit import GramEigen
 
         if self.factorized:
             return
-        ac = (self.a if self.coarse_a is None else self.coarse_a)[self.coarse_rows]
-        u, r = split_unit(ac)
-        coarse = GramEigen.of(self.fn.engine.gram(u, r, 0.0, cancel_poll=cancel_poll))
         out = []
         for i, (_, rows) in enumerate(self.patches):
             if cancel_poll is not None and i % 64 == 0:
                 cancel_poll()
             u, r = split_unit(self.a[rows])
             out.append((GramEigen.of(pk.gram_general(u, r, 0.0)), r))
-        self.coarse_eigen, self.patch_eigen = coarse, out
+        self.patch_eigen = out
 
     def refit(self, lam: float, patch_lam: float | None = None, cancel_poll: CancelPoll = None) -> PoURefit:
         """The partition of unity for a new ``lam`` (``patch_lam`` for the patches, default ``lam``)."""
-        old, engine = self.fn, self.fn.engine
+        old = self.fn
         local_lam = float(lam) if patch_lam is None else float(patch_lam)
-        ac = (self.a if self.coarse_a is None else self.coarse_a)[self.coarse_rows]
-        yc = self.y[self.coarse_rows]
-        if self.coarse_eigen is not None:
-            alpha_c = self.coarse_eigen.solve(yc, len(ac) * float(lam))
-        else:
-            alpha_c, _ = solve_dense(ac, yc, float(lam), engine, cancel_poll=cancel_poll)
-        coarse = KernelFunction(ac, alpha_c, engine, features=old.coarse.features)
         if local_lam == self.info.patch_lam:
-            beta = old.beta
+            fn = old  # the same patches and the same coarse fit: the same function
         else:
             beta = np.empty_like(old.beta)
             if self.patch_eigen is not None:
@@ -452,10 +458,10 @@ class PoURefit:
                         beta[old.start[patch] : old.start[patch] + old.count[patch]] = b
             if cancel_poll is not None:
                 cancel_poll()
-        fn = PoUFunction(old.lo, old.h, old.dims, old.start, old.count, old.cu, beta, coarse, engine, old.features,
-                         cancel_poll=cancel_poll, far_nodes=old.far_nodes)
+            fn = PoUFunction(old.lo, old.h, old.dims, old.start, old.count, old.cu, beta, old.coarse, old.engine,
+                             old.features, far_nodes=old.far_nodes, f0_grid=old.f0_grid)
         info = PoUInfo(**{**self.info.__dict__, "patch_lam": local_lam})
         new = PoURefit(fn=fn, info=info, a=self.a, y=self.y, coarse_rows=self.coarse_rows, coarse_a=self.coarse_a,
                        patches=self.patches, lam=float(lam))
-        new.coarse_eigen, new.patch_eigen = self.coarse_eigen, self.patch_eigen
+        new.patch_eigen = self.patch_eigen
         return new

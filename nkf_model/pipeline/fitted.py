@@ -6,7 +6,7 @@
 * :meth:`Fit.mesh` evaluates the fitted function on a grid and meshes it (stages evaluate, mesh,
   clean, colors): a new ``resolution``, ``close``, ``min_piece`` or ``trim`` value costs only those;
 * :meth:`Fit.with_lam` solves again for a new lambda from the kept constraints (no normals, features,
-  patch layout or winding numbers again): by Cholesky, the same function as a fresh run to the bit,
+  patch layout, coarse fit or winding numbers again): by Cholesky, the same function as a fresh run to the bit,
   or, after :meth:`Fit.factorize` (one eigendecomposition of the Gram matrix, or of every patch's;
   :mod:`nkf_model.fit.refit`), by two matrix-vector products per matrix.
 
@@ -173,7 +173,7 @@ class Fit:
     @property
     def factorized(self) -> bool:
         """True once :meth:`factorize` has run: :meth:`with_lam` is then two matrix-vector products
-        per matrix (plus, for the partition of unity, its 48^3 coarse grid)."""
+        per matrix (the partition of unity: per patch; its coarse fit does not depend on lambda)."""
         if self._prep.kind == "dense":
             return self._shared.eigen is not None
         if self._prep.kind == "pou":
@@ -278,7 +278,7 @@ class Fit:
 
     def factorize(self, cancel=None) -> bool:
         """Make every later :meth:`with_lam` cheap: one eigendecomposition of the Gram matrix
-        (dense), or of every patch's and the coarse fit's (partition of unity). Slow (dense: about 17
+        (dense), or of every patch's (partition of unity). Slow (dense: about 17
         times the Cholesky of the first solve), so run it in the background after the first result.
         ``cancel`` (a ``threading.Event``) is checked between patches only: one dense
         eigendecomposition cannot be interrupted. Returns :attr:`factorized`; thread-safe."""
