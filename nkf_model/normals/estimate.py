@@ -63,7 +63,6 @@ from typing import Optional
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from ..errors import InvalidParameterError
@@ -386,6 +385,8 @@ def _consensus(g, points, normals, sign, votes, cancel_poll: CancelPoll, rounds:
 def _components(n, rows, cols):
     """Connected components ``(count, labels (n,))`` of the graph on ``n`` points with edges
     ``(rows[e], cols[e])``."""
+    from scipy.sparse.csgraph import connected_components  # only when estimating: not on every import
+
     return connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
 
 
@@ -505,6 +506,8 @@ def _seeded_propagation(g, points, normals, seed_sign, noise=None):
     neighbour graph ``g`` and takes its sign from its parent. Pieces without any seed start from
     their first point with its current sign. Returns signs (N,) and the number of pieces.
     """
+    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+
     n = normals.shape[0]
     n_pieces, labels = connected_components(g, directed=False)
     seeded_piece = np.zeros(n_pieces, dtype=bool)

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 
@@ -68,6 +67,8 @@ def piece_labels(n_vertices: int, faces: np.ndarray):
     """Connected pieces of a triangle mesh (through shared vertices): (count, labels (F,))."""
     if len(faces) == 0:
         return 0, np.zeros(0, dtype=np.int64)
+    from scipy.sparse.csgraph import connected_components  # only when trimming: not on every import
+
     r = np.concatenate([faces[:, 0], faces[:, 1]])
     c = np.concatenate([faces[:, 1], faces[:, 2]])
     g = coo_matrix((np.ones(len(r), dtype=np.int8), (r, c)), shape=(n_vertices, n_vertices))
