@@ -224,3 +224,29 @@ def interpolate(grid, lo, step, x):  # pragma: no cover - compiled
     for i in nb.prange(x.shape[0]):
         out[i] = _trilinear(grid, lo, step, x[i, 0], x[i, 1], x[i, 2])
     return out
+
+
+@nb.njit(parallel=True, **_OPTS)
+def eigen_solve_all(q, q_off, e, b, r, v_off, m, floor, out_off, lam, out):  # pragma: no cover - compiled
+    """Every patch's ``beta = r * Q ((Q^T y) / max(e + m lam, floor))`` from its eigendecomposition.
+
+    Patch ``p`` has ``m[p]`` constraints; its eigenvectors ``Q`` (m, m), row-major, are
+    ``q[q_off[p] : q_off[p] + m^2]``; its eigenvalues ``e``, ``b = Q^T y`` and norms ``r`` are at
+    ``v_off[p] : v_off[p] + m`` of ``e``, ``b``, ``r``; the result goes to ``out[out_off[p] :][:m]``.
+    """
+    for p in nb.prange(m.shape[0]):
+        n = m[p]
+        qo = q_off[p]
+        vo = v_off[p]
+        shift = n * lam
+        c = np.empty(n)
+        for k in range(n):
+            c[k] = b[vo + k] / max(e[vo + k] + shift, floor[p])
+        oo = out_off[p]
+        for i in range(n):
+            s = 0.0
+            row = qo + i * n
+            for k in range(n):
+                s += q[row + k] * c[k]
+            out[oo + i] = s * r[vo + i]
+    return out

@@ -408,7 +408,7 @@ class PoURefit:
     def __init__(self, *, fn: PoUFunction, info: PoUInfo, a, y, coarse_rows, coarse_a, patches, lam: float):
         self.fn, self.info, self.a, self.y = fn, info, a, y
         self.coarse_rows, self.coarse_a, self.patches, self.lam = coarse_rows, coarse_a, patches, lam
-        self.patch_eigen = None  # list of (GramEigen, norms r (m,))
+        self.patch_eigen = None  # PatchEigen
 
     @property
     def factorized(self) -> bool:
@@ -417,10 +417,7 @@ class PoURefit:
     @property
     def nbytes(self) -> int:
         """Bytes held by the factorisations and the coarse grid (the rest is shared with the fit)."""
-        total = int(self.fn.f0_grid.nbytes)
-        for eig, r in self.patch_eigen or ():
-            total += eig.nbytes + r.nbytes
-        return total
+        return int(self.fn.f0_grid.nbytes) + (0 if self.patch_eigen is None else self.patch_eigen.nbytes)
 
     def factorize(self, cancel_poll: CancelPoll = None) -> None:
         """Eigendecompose every patch's Gram matrix (once)."""
@@ -428,13 +425,14 @@ class PoURefit:
 
         if self.factorized:
             return
-        out = []
+        pe = PatchEigen.empty(np.array([len(rows) for _, rows in self.patches], dtype=np.int64),
+                              np.array([self.fn.start[patch] for patch, _ in self.patches], dtype=np.int64))
         for i, (_, rows) in enumerate(self.patches):
             if cancel_poll is not None and i % 64 == 0:
                 cancel_poll()
             u, r = split_unit(self.a[rows])
-            out.append((GramEigen.of(pk.gram_general(u, r, 0.0)), r))
-        self.patch_eigen = out
+            pe.put(i, GramEigen.of(pk.gram_general(u, r, 0.0)), self.y[rows], r)
+        self.patch_eigen = pe
 
     def refit(self, lam: float, patch_lam: float | None = None, cancel_poll: CancelPoll = None) -> PoURefit:
         """The partition of unity for a new ``lam`` (``patch_lam`` for the patches, default ``lam``)."""
@@ -445,9 +443,7 @@ class PoURefit:
         else:
             beta = np.empty_like(old.beta)
             if self.patch_eigen is not None:
-                for (patch, rows), (eig, r) in zip(self.patches, self.patch_eigen):
-                    o, m = old.start[patch], old.count[patch]
-                    beta[o : o + m] = eig.solve(self.y[rows], m * local_lam) * r
+                self.patch_eigen.solve(local_lam, beta)
             else:
                 def work(job):
                     return job[0], _solve_patch(self.a[job[1]], self.y[job[1]], local_lam)[1]
@@ -465,3 +461,50 @@ class PoURefit:
                        patches=self.patches, lam=float(lam))
         new.patch_eigen = self.patch_eigen
         return new
+
+
+@dataclass
+class PatchEigen:
+    """Every patch's eigendecomposition (:class:`nkf_model.fit.refit.GramEigen`) in flat arrays, with
+    ``b = Q^T y`` (lambda does not change it): a new lambda is then one pass over the eigenvectors in
+    one compiled loop (:func:`nkf_model.fit._pou_kernels.eigen_solve_all`) instead of two
+    matrix-vector products per patch from Python (0.07 s for the 1,620 patches of 10,000 points)."""
+
+    q: np.ndarray
+    q_off: np.ndarray
+    e: np.ndarray
+    b: np.ndarray
+    r: np.ndarray
+    v_off: np.ndarray
+    m: np.ndarray
+    floor: np.ndarray
+    out_off: np.ndarray
+
+    @classmethod
+    def empty(cls, m: np.ndarray, out_off: np.ndarray) -> PatchEigen:
+        """Room for patches of ``m`` (P,) constraints whose weights start at ``out_off`` (P,) in beta."""
+        q_off = np.concatenate([[0], np.cumsum(m * m)[:-1]]).astype(np.int64)
+        v_off = np.concatenate([[0], np.cumsum(m)[:-1]]).astype(np.int64)
+        nq, nv = int((m * m).sum()), int(m.sum())
+        return cls(q=np.empty(nq), q_off=q_off, e=np.empty(nv), b=np.empty(nv), r=np.empty(nv), v_off=v_off,
+                   m=m, floor=np.empty(len(m)), out_off=out_off)
+
+    def put(self, p: int, eig, y: np.ndarray, r: np.ndarray) -> None:
+        """Patch ``p``'s :class:`nkf_model.fit.refit.GramEigen`, its labels ``y`` and norms ``r``."""
+        n, qo, vo = int(self.m[p]), int(self.q_off[p]), int(self.v_off[p])
+        self.q[qo : qo + n * n] = eig.Q.reshape(-1)
+        self.e[vo : vo + n] = eig.e
+        self.b[vo : vo + n] = eig.Q.T @ y
+        self.r[vo : vo + n] = r
+        self.floor[p] = eig.floor
+
+    def solve(self, lam: float, out: np.ndarray) -> np.ndarray:
+        """Write every patch's ``alpha * r`` for the local lambda ``lam`` into ``out`` (the beta array)."""
+        with NumbaEngine._lock:  # numba's parallel loops may not run from two threads at once
+            return pk.eigen_solve_all(self.q, self.q_off, self.e, self.b, self.r, self.v_off, self.m, self.floor,
+                                      self.out_off, float(lam), out)
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(a.nbytes for a in (self.q, self.q_off, self.e, self.b, self.r, self.v_off, self.m,
+                                           self.floor, self.out_off)))
