@@ -10,13 +10,13 @@ succeeds.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 import threading
 import time
 import warnings
 
 from . import __version__
+from ._imports import collector_paused
 from .errors import Cancelled, MissingNormalsError, NKFInputError
 from .options import SCAN_MIN_PIECE, SCAN_TRIM, SETTING, Options
 
@@ -168,25 +168,8 @@ def _classes(text):
     return codes
 
 
-@contextlib.contextmanager
-def _collector_paused():
-    """No cyclic garbage collection while the solver's modules load: importing NumPy, SciPy and
-    numba makes about a million objects, almost none of them garbage, and sets off some 250
-    collections that free nothing (0.1 s of ``nkf reconstruct``, ``docs/blender-user.md``). The
-    collector's previous state comes back afterwards."""
-    import gc
-
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was_enabled:
-            gc.enable()
-
-
 def cmd_reconstruct(args) -> int:
-    with _collector_paused():
+    with collector_paused():  # 0.1 s less to load the solver
         import numpy as np
 
         from .io.files import check_output_path, read_point_cloud, write_mesh

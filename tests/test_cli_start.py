@@ -14,7 +14,8 @@ import textwrap
 import pytest
 from shapes import sphere_points
 
-from nkf_model.cli import _collector_paused, main
+from nkf_model._imports import collector_paused as _collector_paused
+from nkf_model.cli import main
 from nkf_model.io.files import write_point_cloud
 from nkf_model.kernel import engines
 
