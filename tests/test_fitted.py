@@ -134,3 +134,11 @@ def test_pou_new_lambda_keeps_the_coarse_fit_and_solves_only_the_patches():
     under = f.with_lam(floor / 2)
     assert under._sol.fn is f._sol.fn and under.stats["pou"]["patch_lam"] == floor
     assert same(under.mesh(), nkf_model.reconstruct(p, nrm, lam=floor / 2, **settings))
+
+
+def test_coarse_lambda_is_the_default_lambda():
+    # docs/adjust.md: runs at the default lambda kept their coarse fit when it stopped following lambda
+    from nkf_model.fit.partition_of_unity import COARSE_LAM
+    from nkf_model.options import SETTING
+
+    assert COARSE_LAM == SETTING["lam"].default

@@ -14,9 +14,9 @@ whose weights sum to one everywhere (:mod:`nkf_model.fit._pou_kernels`). Patches
 :data:`MIN_PATCH_POINTS` points use a coarse global fit ``f0`` instead (an exact solve on
 :data:`COARSE_POINTS` points picked by farthest-point sampling with lambda :data:`COARSE_LAM`,
 sampled once on a 48^3 grid and interpolated), which gives the field far from the data; given the
-normals, its sign there is the point cloud's winding number's (:mod:`nkf_model.points.winding`). Cost: the local solves are O(N P^2) in
-total for P points per patch, and every evaluation sums over the centres of 8 patches (about 16 P
-kernel evaluations), whatever N is.
+normals, its sign there is the point cloud's winding number's (:mod:`nkf_model.points.winding`).
+Cost: the local solves are O(N P^2) in total for P points per patch, and every evaluation sums over
+the centres of 8 patches (about 16 P kernel evaluations), whatever N is.
 """
 
 from __future__ import annotations
@@ -392,7 +392,7 @@ class PoURefit:
     is :data:`COARSE_LAM` whatever the fit's, so a new lambda leaves it as it is. :meth:`refit`
     solves the patches again with a new lambda, by Cholesky as :func:`fit_pou` does (the same
     function to the bit), or, after :meth:`factorize`, from each patch's eigendecomposition
-    (:class:`nkf_model.fit.refit.GramEigen`): two matrix-vector products per patch. When the
+    (:class:`PatchEigen`): one compiled pass over their eigenvectors. When the
     patches' lambda does not change either (noisy input: the noise floor), the function is this one.
 
     Attributes
