@@ -21,7 +21,6 @@ import sys as _sys
 from importlib import import_module
 from types import ModuleType as _ModuleType
 
-from ._imports import collector_paused as _collector_paused
 from .errors import (
     Cancelled,
     DegenerateInputError,
@@ -58,18 +57,11 @@ _LAZY = {
 }
 
 
-def _load(module):
-    """Import one of this package's modules; the reconstruction code loads with the garbage
-    collector paused (``nkf_model._imports``: 0.1 s less)."""
-    with _collector_paused():
-        return import_module(module, __name__)
-
-
 def __getattr__(name):
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'nkf_model' has no attribute {name!r}")
-    value = getattr(_load(module), name)
+    value = getattr(import_module(module, __name__), name)
     globals()[name] = value
     return value
 
@@ -88,7 +80,7 @@ class _Package(_ModuleType):
 
     @property
     def fit(self):
-        return _load(".pipeline.reconstruct").fit
+        return import_module(".pipeline.reconstruct", __name__).fit
 
     @fit.setter
     def fit(self, value):  # the import system recording the subpackage: it stays in sys.modules

@@ -14,7 +14,6 @@ import textwrap
 import pytest
 from shapes import sphere_points
 
-from nkf_model._imports import collector_paused as _collector_paused
 from nkf_model.cli import main
 from nkf_model.io.files import write_point_cloud
 from nkf_model.kernel import engines
@@ -23,10 +22,23 @@ PROGRAM = textwrap.dedent(
     """
     import gc, sys
     sys.argv = ["nkf", "reconstruct", *sys.argv[1:]]
-    from nkf_model.cli import main
-    rc = main()
+    import nkf_model.cli as cli
+    COLLECTIONS_WHILE_LOADING = [None]
+    load = cli._load_solver
+
+    def counted(program):  # how many collections loading the solver sets off
+        runs = []
+        gc.callbacks.append(lambda phase, info: runs.append(1) if phase == "start" else None)
+        try:
+            return load(program)
+        finally:
+            gc.callbacks.clear()
+            COLLECTIONS_WHILE_LOADING[0] = len(runs)
+
+    cli._load_solver = counted
+    rc = cli.main()
     print(rc, "torch" in sys.modules, "scipy.sparse.csgraph" in sys.modules, gc.isenabled(),
-          gc.get_freeze_count() > 0)
+          gc.get_freeze_count() > 0, COLLECTIONS_WHILE_LOADING[0])
     """
 )
 
@@ -45,11 +57,12 @@ def test_program_loads_only_what_the_method_needs_and_skips_the_exit_sweep(cloud
     args = [str(cloud), str(out), "--method", method, "--resolution", "24", "--quiet"]
     run = subprocess.run([sys.executable, "-c", PROGRAM, *args], capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
-    rc, torch, csgraph, gc_enabled, frozen = run.stdout.split()
+    rc, torch, csgraph, gc_enabled, frozen, collections = run.stdout.split()
     assert rc == "0"
     if not engines.cuda_driver_present():  # device "auto" looks for CUDA only where a driver is
         assert torch == "False"
     assert csgraph == "False"  # given normals, no trimming: no graph work, no graph module
+    assert collections == "0"  # loading the solver: the collector paused
     assert (gc_enabled, frozen) == ("False", "True")  # main() as the program: its process ends next
     # ... and it writes what an in-process run writes, byte for byte.
     same = tmp_path / "in_process.ply"
@@ -63,19 +76,3 @@ def test_in_process_main_keeps_the_collector(cloud, tmp_path):
     assert main(["reconstruct", str(cloud), str(tmp_path / "m.ply"), "--resolution", "24", "--quiet"]) == 0
     assert gc.isenabled()
     assert gc.get_freeze_count() == frozen
-
-
-def test_collector_paused_restores_the_previous_state():
-    assert gc.isenabled()
-    with pytest.raises(RuntimeError):
-        with _collector_paused():
-            assert not gc.isenabled()
-            raise RuntimeError("an import failed")
-    assert gc.isenabled()
-    gc.disable()
-    try:
-        with _collector_paused():
-            assert not gc.isenabled()
-        assert not gc.isenabled()  # it was off: it stays off
-    finally:
-        gc.enable()
