@@ -365,7 +365,12 @@ def tradeoff(entries, cache, centres_list, n=10000, res=256, log=print) -> str:
 
 def overhead(entries, weights=None, n=1000, res=128, repeats=3, log=print) -> str:
     """Wall time of ``nkf`` against ``splines`` on the same inputs (the median of ``repeats`` calls
-    each, alternating), and the learned kernel's extra cost per input."""
+    each, alternating), and the learned kernel's extra cost per input: a table."""
+    return format_overhead(overhead_times(entries, weights, n, res, repeats, log))
+
+
+def overhead_times(entries, weights=None, n=1000, res=128, repeats=3, log=print) -> list[tuple[float, float]]:
+    """``(splines seconds, nkf seconds)`` per input, each the median of ``repeats`` alternating calls."""
     rows = []
     for e in entries:
         v0, f0 = corpus.load(e)
@@ -379,6 +384,10 @@ def overhead(entries, weights=None, n=1000, res=128, repeats=3, log=print) -> st
         t_s, t_n = statistics.median(ts["splines"]), statistics.median(ts["nkf"])
         rows.append((t_s, t_n))
         log(f"  overhead {e.name:40s} splines {t_s:.3f}s nkf {t_n:.3f}s (+{t_n - t_s:.3f}s)")
+    return rows
+
+
+def format_overhead(rows) -> str:
     extra = [t_n - t_s for t_s, t_n in rows]
     return "\n".join([
         "| inputs | splines, mean (s) | nkf, mean (s) | extra, mean (s) | extra, max (s) |",
