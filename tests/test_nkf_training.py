@@ -53,6 +53,21 @@ def test_examples_are_in_the_unit_box_with_labels(two_meshes):
         assert set(np.unique(ex.occupancy)) <= {0.0, 1.0} and 0 < ex.occupancy.mean() < 1
 
 
+def test_samples_without_a_normal_are_never_drawn(two_meshes):
+    # A degenerate spot of a procedural shape once gave a zero normal; the example made from it had NaN
+    # normals and the training run ended on an index error.
+    s = dict(two_meshes[1])
+    nrm = s["surf_nrm"].copy()
+    nrm[::3] = 0.0
+    nrm[1::7] = np.nan
+    s["surf_nrm"] = nrm
+    rng = np.random.default_rng(3)
+    for _ in range(6):
+        ex = make_example(s, rng, SMALL_AUG)
+        assert np.all(np.isfinite(ex.points)) and np.all(np.isfinite(ex.normals))
+        assert np.allclose(np.linalg.norm(ex.normals, axis=1), 1.0)
+
+
 def test_half_surface_inputs_are_one_sided(two_meshes):
     ex = validation_example(two_meshes[0], 300, 0.0, True, seed=5)
     assert ex.half and len(ex.points) == 300

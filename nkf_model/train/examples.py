@@ -200,9 +200,12 @@ def sample_input(samples: dict, n: int, noise: float, rng, half_direction=None, 
     """
     sp = samples["surf_pts"].astype(np.float64)
     sn = samples["surf_nrm"].astype(np.float64)
-    idx = np.arange(len(sp))
+    # Samples without a usable normal (zero or non-finite, as a degenerate spot of a shape gives) are
+    # never drawn: one would turn into NaN features and end the run.
+    length = np.linalg.norm(sn, axis=1)
+    idx = np.flatnonzero(np.isfinite(length) & (length > 0.5))
     if half_direction is not None:
-        idx = idx[half_space_mask(sp, half_direction)]
+        idx = idx[half_space_mask(sp[idx], half_direction)]
     if holes is not None:
         kept = idx[partial_mask(sp[idx], *holes)]
         if len(kept) >= min(n, len(idx)) // 2:  # never leave less than half of what was asked for

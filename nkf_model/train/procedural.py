@@ -691,7 +691,9 @@ def shape_samples(seed: int, spec: ProceduralSpec = ProceduralSpec(), family: st
             break
         p0, _ = sample_surface(v, faces, int(need * 1.1) + 16, rng)
         p, n, r = project_to_surface(f, p0)
-        ok = (r < 1e-6) & (np.linalg.norm(p - p0, axis=1) < cell) & np.isfinite(n).all(axis=1)
+        # A zero gradient (a crease or a saddle of the field) gives no normal: such points are dropped.
+        ok = ((r < 1e-6) & (np.linalg.norm(p - p0, axis=1) < cell) & np.isfinite(n).all(axis=1)
+              & (np.linalg.norm(n, axis=1) > 0.5))
         pts, nrm = np.concatenate([pts, p[ok]]), np.concatenate([nrm, n[ok]])
     if len(pts) < spec.n_surface:
         raise ValueError(f"shape {seed}: only {len(pts)} surface points converged")
