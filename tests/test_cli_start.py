@@ -11,11 +11,12 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
 import pytest
 from shapes import sphere_points
 
 from nkf_model.cli import main
-from nkf_model.io.files import write_point_cloud
+from nkf_model.io.files import read_mesh, write_point_cloud
 from nkf_model.kernel import engines
 
 PROGRAM = textwrap.dedent(
@@ -64,10 +65,17 @@ def test_program_loads_only_what_the_method_needs_and_skips_the_exit_sweep(cloud
     assert csgraph == "False"  # given normals, no trimming: no graph work, no graph module
     assert collections == "0"  # loading the solver: the collector paused
     assert (gc_enabled, frozen) == ("False", "True")  # main() as the program: its process ends next
-    # ... and it writes what an in-process run writes, byte for byte.
+    # ... and it writes what an in-process run writes: byte for byte, unless this process has PyTorch
+    # loaded and NKF's feature net runs in it (kernel.weights.resolve_backend: "the same features
+    # within 1e-6"), when the vertices agree to float32 rounding and the faces exactly.
     same = tmp_path / "in_process.ply"
     assert main(["reconstruct", str(cloud), str(same), *args[2:]]) == 0
-    assert same.read_bytes() == out.read_bytes()
+    if method == "splines" or "torch" not in sys.modules:
+        assert same.read_bytes() == out.read_bytes()
+    else:
+        a, b = read_mesh(out), read_mesh(same)
+        assert np.array_equal(a[1], b[1])
+        assert np.allclose(a[0], b[0], rtol=0, atol=1e-5)
 
 
 def test_in_process_main_keeps_the_collector(cloud, tmp_path):
