@@ -16,3 +16,59 @@ def test_random_signs_on_a_sphere_become_outward_from_a_mostly_right_reference()
     s, pieces = consistent_signs(p, n, reference=ref)
     assert pieces == 1
     assert np.all(np.einsum("ij,ij->i", n * s[:, None], p) > 0)
+
+
+def _state(points):
+    from nkf_model.normals import estimate
+
+    sign, state, _ = estimate._estimate(points, estimate.DEFAULT_K, "outward", None)
+    return sign, state
+
+
+def test_the_check_takes_back_a_face_seeded_from_the_inside():
+    # Views that look into an unscanned opening seed a whole face with the wrong side; the check
+    # flips it back (a cap of the sphere given the wrong sign, as the orientation left it).
+    from nkf_model.normals.consistent import tangent_plane_check
+
+    rng = np.random.default_rng(1)
+    p = rng.normal(size=(12000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    sign, state = _state(p)
+    oriented = state.normals * sign[:, None]
+    assert np.mean(np.einsum("ij,ij->i", oriented, p) > 0) > 0.99
+    wrong = sign.copy()
+    cap = p[:, 2] < -0.8  # about 10 % of the sphere
+    wrong[cap] *= -1
+    fixed, flips = tangent_plane_check(state, wrong)
+    assert flips >= cap.sum() * 0.95
+    assert np.mean(np.einsum("ij,ij->i", state.normals * fixed[:, None], p) > 0) > 0.99
+
+
+def test_the_check_leaves_thin_walls_alone(monkeypatch):
+    # A cup whose walls are thinner than the spacing: the propagation crosses the wall and would make
+    # the inner face agree with the outer one; the check keeps the orientation.
+    from scan_shapes import open_box_points
+
+    from nkf_model.normals import consistent
+
+    p, n = open_box_points(12000, wall=0.008)
+    sign, state = _state(p)
+    assert state.spacing > 0.008
+    assert np.mean(np.einsum("ij,ij->i", state.normals * sign[:, None], n) > 0) > 0.93
+    kept, flips = consistent.tangent_plane_check(state, sign)
+    assert flips == 0 and np.array_equal(kept, sign)
+    monkeypatch.setattr(consistent, "MAX_FLIPS", 1.0)  # what the share test stops
+    worse, flips = consistent.tangent_plane_check(state, sign)
+    assert np.mean(np.einsum("ij,ij->i", state.normals * worse[:, None], n) > 0) < 0.8
+
+
+def test_the_check_leaves_small_clouds_alone():
+    from nkf_model.normals import consistent
+
+    rng = np.random.default_rng(2)
+    p = rng.normal(size=(3000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    sign, state = _state(p)
+    wrong = sign.copy()
+    wrong[p[:, 2] < -0.8] *= -1
+    assert consistent.tangent_plane_check(state, wrong) == (wrong, 0)

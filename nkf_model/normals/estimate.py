@@ -7,7 +7,7 @@ Two steps, both on the CPU with SciPy:
    weights ``exp(-(r / sigma)^2)`` of each neighbour's distance ``r`` to the current plane, starting
    from the 7 nearest: on a plate thinner than the neighbourhood, plain PCA mixes both faces into a
    meaningless normal, the reweighted fit keeps to the point's own face. Its sign is arbitrary.
-2. :func:`orient_normals`: consistent signs, in five steps.
+2. :func:`orient_normals`: consistent signs, in six steps.
 
    a. Seeds from views. Every point is drawn as a disc in its tangent plane into depth buffers: 64
       orthographic views from all around (``"outward"``, closed objects), from the upper half
@@ -46,6 +46,10 @@ Two steps, both on the CPU with SciPy:
    e. Closed objects of at most 20,000 points: a small network trained on the corpus's ``train``
       split reads every step's evidence per point and flips the signs it finds still wrong
       (:mod:`nkf_model.normals.sign_check`).
+   f. Hoppe's tangent-plane propagation from the result, each piece taking the side most of its
+      points have, kept only when it agrees clearly better with the edge relations
+      (:func:`nkf_model.normals.consistent.tangent_plane_check`): views that look into an unscanned
+      opening seed whole faces from the inside, and this takes them back.
 
 Noise: the noise level of the cloud (the flattest quarter's plane-fit residual) widens the depth
 tolerance of the views and keeps offsets along the normals that are within the noise from being
@@ -103,6 +107,8 @@ class OrientationInfo:
         :data:`~nkf_model.normals.sign_check.MAX_POINTS` points, ``safetensors`` installed).
     learned_flips : int
         Points it flipped.
+    consistent_flips : int
+        Points the last check (:func:`nkf_model.normals.consistent.tangent_plane_check`) flipped.
     """
 
     orientation: str
@@ -111,6 +117,7 @@ class OrientationInfo:
     spacing: float = 0.0
     learned_check: bool = False
     learned_flips: int = 0
+    consistent_flips: int = 0
 
 
 def check_viewpoints(viewpoints) -> Optional[np.ndarray]:
@@ -707,10 +714,14 @@ def orient_normals(
 
 
 def _checked(sign, state, info, learned: bool, cancel_poll: CancelPoll):
-    """Oriented normals (N, 3) and ``info``, after the learned sign check where it applies."""
+    """Oriented normals (N, 3) and ``info``, after the learned sign check where it applies and the
+    tangent-plane check (step f)."""
+    from .consistent import tangent_plane_check
+
     if learned and info.orientation == "outward":
         sign, flips = sign_check.flip_wrong(state, cancel_poll=cancel_poll)
         info.learned_check, info.learned_flips = flips is not None, flips or 0
+    sign, info.consistent_flips = tangent_plane_check(state, sign, cancel_poll)
     return state.normals * sign[:, None], info
 
 
@@ -785,7 +796,7 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     state = sign_check.OrientationState(
         points=p, normals=nrm, sign=sign, votes=votes, weight=weight, view_seed=view_seed, layer_seed=seed,
         layer_vote=lv, above=sides[0], below=sides[1], graph=g, residual=np.asarray(res, dtype=np.float64),
-        spacing=spacing, winding=winding,
+        spacing=spacing, winding=winding, noise=noise,
     )
     return sign, state, info
 

@@ -79,6 +79,8 @@ class OrientationState:
         Median nearest-neighbour distance, in the units of ``points``.
     winding : :class:`~nkf_model.points.winding.WindingGradient` or None
         The winding-number step's field over every point, when it built one (reused here).
+    noise : (N,) float64 or None
+        The noise level the orientation's edges used (offsets along the normals within it are noise).
     """
 
     points: np.ndarray
@@ -95,6 +97,7 @@ class OrientationState:
     residual: np.ndarray
     spacing: float
     winding: object = None
+    noise: object = None
 
 
 def point_features(state: OrientationState, cancel_poll=None) -> np.ndarray:
