@@ -38,15 +38,17 @@ def _deps_box(layout) -> bool:
 
 
 def _prepare_line(layout) -> None:
-    """The first-time preparation (compiling the solver) while it runs, or why it failed."""
+    """The background step after enabling while it runs (the first-time preparation, compiling
+    the solver, or a later session's short load step), or why it failed."""
     st = prepare.status()
+    load = st.kind == prepare.LOAD
     if st.state == prepare.RUNNING:
-        layout.progress(factor=st.fraction, type="BAR",
-                        text=f"Preparing the solver (first time only) {st.fraction * 100:.0f}%")
+        what = "Loading the solver" if load else "Preparing the solver (first time only)"
+        layout.progress(factor=st.fraction, type="BAR", text=f"{what} {st.fraction * 100:.0f}%")
     elif st.state == prepare.FAILED:
         col = layout.column()
         col.alert = True
-        wrapped(col, f"Preparing the solver failed: {st.error}", icon="ERROR", width=WRAP)
+        wrapped(col, f"{'Loading' if load else 'Preparing'} the solver failed: {st.error}", icon="ERROR", width=WRAP)
 
 
 def _normals_line(box, info, s, context) -> str:

@@ -6,6 +6,9 @@ stored beside the modules (``__pycache__``) and later processes load it. :func:`
 synthetic reconstructions through every CPU code path (the exact solve, the partition of unity,
 Neural Splines and NKF, estimated normals, trimming, colours) so that all of it is compiled and
 cached once, for example in the background right after a Blender extension is installed.
+:data:`LOAD_STEPS` (the two small exact solves) is the short version for a process whose kernels
+are already cached: it imports the solver and sets up numba's tables (a few seconds), so that
+the first real reconstruction of the session does not pay for that.
 """
 
 from __future__ import annotations
@@ -28,6 +31,9 @@ STEPS = (
                                                       min_piece=0.002)),
 )
 
+# The short "load" version: the exact solves only (imports, numba's tables, the cached kernels they use).
+LOAD_STEPS = ("exact solve, Neural Splines", "exact solve, NKF")
+
 
 def _sphere(n: int):
     i = np.arange(n) + 0.5
@@ -37,19 +43,20 @@ def _sphere(n: int):
     return d * 0.5, d
 
 
-def warm_up(progress=None, cancel: threading.Event | None = None, methods=("splines", "nkf")) -> dict:
-    """Run :data:`STEPS` (those whose method is in ``methods``) on the CPU; return seconds per step.
+def warm_up(progress=None, cancel: threading.Event | None = None, methods=("splines", "nkf"), steps=None) -> dict:
+    """Run :data:`STEPS` (those whose method is in ``methods`` and, when ``steps`` is given, whose
+    label is in it, e.g. :data:`LOAD_STEPS`) on the CPU; return seconds per step.
 
     ``progress(fraction, label)`` is called before each step and at the end; ``cancel`` (an Event)
     stops it between steps and inside them (raises :class:`~nkf_model.errors.Cancelled`).
     """
-    steps = [s for s in STEPS if s[2]["method"] in methods]
+    chosen = [s for s in STEPS if s[2]["method"] in methods and (steps is None or s[0] in steps)]
     seconds = {}
-    for k, (label, n, settings) in enumerate(steps):
+    for k, (label, n, settings) in enumerate(chosen):
         if cancel is not None and cancel.is_set():
             raise Cancelled("the preparation was cancelled")
         if progress is not None:
-            progress(k / len(steps), label)
+            progress(k / len(chosen), label)
         pts, nrm = _sphere(n)
         colors = np.tile(np.array([[200, 120, 40]], np.uint8), (n, 1)) if "trim" in settings else None
         t0 = time.perf_counter()
