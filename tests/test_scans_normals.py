@@ -183,6 +183,7 @@ def test_reconstruct_estimates_missing_normals_and_says_so():
     assert m.stats["normals"] == "estimated"
     assert m.stats["orientation"]["learned_check"] is True
     assert 0 <= m.stats["orientation"]["flipped_by_learned_check"] <= 15
+    assert m.stats["orientation"]["flipped_by_tangent_planes"] == 0  # under 10,000 points: never runs
     assert np.abs(np.linalg.norm(m.vertices, axis=1) - 1).max() < 0.03
     # normals_mode="estimate" ignores given normals (here deliberately wrong ones).
     m2 = nkf_model.reconstruct(p, -p, resolution=48, device="cpu", normals_mode="estimate")
