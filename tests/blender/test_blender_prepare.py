@@ -51,7 +51,7 @@ def test_runs_once_with_progress_in_the_panel(scene, bpy_module, held_warm_up, t
         pass
     (bar,) = [i for i in _draw(bpy_module).items if i.kind == "progress"]
     # warm_up's 25 %, of the share of the bar before the bytecode is written
-    assert bar.text == f"Preparing the solver (first time only) {prepare.WARM_UP_SHARE * 25:.0f}%"
+    assert bar.text == f"Preparing the solver (first time only) {prepare.WARM_UP_SHARE * 0.25 * 100:.0f}%"
     held_warm_up.release.set()
     assert prepare.wait(10) and prepare.status().state == "done"
     assert "Preparing" not in _draw(bpy_module).joined()
