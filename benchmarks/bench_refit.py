@@ -13,7 +13,12 @@ size and method, on a torus with a bumpy tube (points on the analytic surface, e
   to 3 times that floor, so that the patches are solved again): its solve against the full run's
   solve, and solve + mesh at 128 against a full run with that lambda; the result against that full
   run (max vertex distance over the box's longest side, same triangles);
-* a live preview step: another new lambda (3 times the last) + mesh at resolution 64.
+* a live preview step: another new lambda (3 times the last) + mesh at resolution 64 (best of 3, and
+  its first mesh: the learned features at the grid nodes are kept in the fit from the earlier meshes,
+  ``Fit``'s ``QueryCache``; the share of the preview's nodes found there);
+* for ``method="nkf"``: the memory those kept features take, nodes reused and computed over the run.
+
+``--levels`` prints the load average (``/proc/loadavg``) before and after each table.
 """
 
 from __future__ import annotations
@@ -82,6 +87,12 @@ def run(n: int, method: str, res: int = 128, lam0: float = 1e-10, lam1: float = 
     dev = (np.abs(m1.local_vertices.astype(float) - full1.local_vertices.astype(float)).max() / m1.scale
            if m1.faces.shape == full1.faces.shape and np.array_equal(m1.faces, full1.faces) else float("nan"))
     prev, t_prev_lam = timed(lambda: fit.with_lam(3 * lam1), repeat)
+    cache = getattr(fit._shared, "queries", None)  # learned features at grid nodes (nkf, this commit on)
+    hits0, misses0 = (cache.hits, cache.misses) if cache is not None else (0, 0)
+    _, t_prev_first = timed(lambda: prev.mesh(resolution=preview))
+    hit_share = ("" if cache is None or cache.hits + cache.misses == hits0 + misses0 else
+                 f"; features of {100 * (cache.hits - hits0) / (cache.hits + cache.misses - hits0 - misses0):.0f} %"
+                 " of its nodes kept from earlier meshes")
     _, t_prev_mesh = timed(lambda: prev.mesh(resolution=preview), repeat)
     rows = [
         ("full run at 128: total / solve / evaluate+mesh", f"{t_full:.2f} / {solve:.2f} / {em:.2f} s", ""),
@@ -96,15 +107,28 @@ def run(n: int, method: str, res: int = 128, lam0: float = 1e-10, lam1: float = 
          f"{t_full1 / (t_lam + t_lam_mesh):.1f}x faster than the full run ({t_full1:.2f} s; target >= 3x)"),
         ("lambda change vs full run: max vertex distance / box", f"{dev:.1e}", "target <= 1e-6"),
         (f"live preview step: new lambda + mesh at {preview}", f"{t_prev_lam + t_prev_mesh:.2f} s",
-         f"({t_prev_lam:.3f} + {t_prev_mesh:.2f}; target <= 0.3 s)"),
+         f"({t_prev_lam:.3f} + {t_prev_mesh:.2f}; its first mesh {t_prev_first:.2f} s{hit_share}; target <= 0.3 s)"),
     ]
+    if cache is not None:
+        rows.append(("learned features kept at grid nodes", f"{cache.nbytes / 2**20:.1f} MiB",
+                     f"{cache.hits:,} nodes reused, {cache.misses:,} computed"))
     return rows
+
+
+def loadavg() -> str:
+    """The 1-, 5- and 15-minute load averages (Linux), or '?'."""
+    try:
+        with open("/proc/loadavg") as f:
+            return " ".join(f.read().split()[:3])
+    except OSError:
+        return "?"
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, nargs="+", default=[3000, 10000])
     ap.add_argument("--methods", nargs="+", default=["nkf", "splines"])
+    ap.add_argument("--levels", action="store_true", help="print the load average before and after each table")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     p, nrm = bumpy_torus(500)
@@ -113,9 +137,13 @@ def main(argv=None):
         nkf_model.reconstruct(p, nrm, method=method, resolution=32, solver="pou")
     for n in args.points:
         for method in args.methods:
+            if args.levels:
+                print(f"\nload average before: {loadavg()}", flush=True)
             print(f"\n| {n:,} points, {method} | time | note |\n|---|---:|---|", flush=True)
             for name, value, note in run(n, method):
                 print(f"| {name} | {value} | {note} |", flush=True)
+            if args.levels:
+                print(f"\nload average after: {loadavg()}", flush=True)
 
 
 if __name__ == "__main__":

@@ -163,8 +163,18 @@ class PoUFunction:
 
     def __call__(self, x: np.ndarray, cancel_poll: CancelPoll = None) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)
+        return self.at(x, *self.query(x), cancel_poll=cancel_poll)
+
+    def query(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The query side of ``x`` (N, 3), which does not depend on lambda: unit homogeneous vectors
+        (N, D) and norms (N,), row by row (as :meth:`nkf_model.fit.solve.KernelFunction.query`)."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
         phi = None if self.features is None else self.features(x)
-        qu, qr = split_unit(homogeneous(x, phi))
+        return split_unit(homogeneous(x, phi))
+
+    def at(self, x: np.ndarray, qu: np.ndarray, qr: np.ndarray, cancel_poll: CancelPoll = None) -> np.ndarray:
+        """Values at ``x`` (N, 3) float64 from its :meth:`query`: the same as ``self(x)``."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
         if cancel_poll is not None:
             cancel_poll()
         if isinstance(self.engine, NumbaEngine):

@@ -82,8 +82,17 @@ class KernelFunction:
 
     def __call__(self, x: np.ndarray, cancel_poll: CancelPoll = None) -> np.ndarray:
         """Values at unit-box points ``x`` (N, 3): (N,) float64."""
+        return self.at(x, *self.query(x), cancel_poll=cancel_poll)
+
+    def query(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The query side of ``x`` (N, 3), which does not depend on the weights: unit homogeneous
+        vectors ``[x : phi(x) : 1] / |...|`` (N, D) and their norms (N,). Row by row: the rows of a
+        subset of ``x`` are the same to the bit (``nkf_model.pipeline.fitted`` keeps them per grid node)."""
         phi = None if self.features is None else self.features(x)
-        qu, qr = split_unit(homogeneous(x, phi))
+        return split_unit(homogeneous(x, phi))
+
+    def at(self, x: np.ndarray, qu: np.ndarray, qr: np.ndarray, cancel_poll: CancelPoll = None) -> np.ndarray:
+        """Values at ``x`` from its :meth:`query` (``qu``, ``qr``): the same as ``self(x)``."""
         return self.engine.kernel_sum(qu, qr, self._cu, self._cr, self.alpha, cancel_poll)
 
 

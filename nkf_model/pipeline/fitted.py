@@ -35,6 +35,7 @@ from ..points.farthest_point import farthest_point_sample
 from ..points.normalise import GRID_HALF, Normalisation
 from ..points.outliers import OUTLIER_MIN_POINTS
 from ..points.winding import BlendedField, winding_scale
+from ..surface import _flood_kernels as _fk
 from ..surface.colors import transfer_colors
 from ..surface.evaluate import evaluate_sparse
 from ..surface.mesh import Mesh, triangulate, vertex_normals
@@ -122,7 +123,103 @@ class _Shared:
         # K(calibration points, centres) (Q, 2N), made by factorize() for the dense solver: the far
         # field's scale for a new lambda is then one product instead of a kernel sum.
         self.blend_k: np.ndarray | None = None
+        # The learned features at the grid nodes already evaluated (QueryCache), for every lambda.
+        self.queries: QueryCache | None = QueryCache(QUERY_CACHE_BYTES) if keep and QUERY_CACHE_BYTES > 0 else None
         self.lock = threading.Lock()
+
+
+class _Known:
+    """Stands in for a function whose values at the next call's points are already known."""
+
+    def __init__(self, values: np.ndarray):
+        self.values = values
+
+    def __call__(self, x, cancel_poll=None):
+        return self.values
+
+
+class QueryCache:
+    """The query side of the fitted function at grid nodes: for each node that :meth:`Fit.mesh`
+    evaluated, its unit homogeneous vector ``[x : phi(x) : 1] / |...|`` and norm (``fn.query``), per
+    grid level (``(r, cell)`` of :func:`nkf_model.surface.evaluate.evaluate_sparse`).
+
+    Lambda does not change them: every fit of one :func:`nkf_model.fit` call shares the cache, and a
+    new lambda (a live preview, a re-mesh after :meth:`Fit.with_lam`) sums only the weighted kernel at
+    the nodes it saw before, without the learned features again. The rows are computed row by row
+    (``query`` of a subset gives the same rows to the bit), so every value is what a fresh run gives.
+    At most ``max_bytes`` are kept: a level that does not fit drops the others first, then stops
+    growing (its new nodes are computed and not kept)."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = int(max_bytes)
+        self._levels: dict = {}  # level -> [keys table, row table, qu (cap, D), qr (cap,), rows used]
+        self._lock = threading.Lock()
+        self.hits = 0
+        self.misses = 0
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(e[0].nbytes + e[1].nbytes + e[2].nbytes + e[3].nbytes for e in self._levels.values()))
+
+    def values(self, fn, pts: np.ndarray, keys: np.ndarray, level, cancel_poll=None) -> np.ndarray:
+        """``fn(pts)`` for the nodes ``keys`` of ``level`` at ``pts``, through ``fn.query``/``fn.at``."""
+        with self._lock:
+            e = self._levels.get(level)
+            rows = _fk.lookup(e[0], e[1], keys) if e is not None else np.full(len(keys), np.nan)
+            miss = np.isnan(rows)
+            n_miss = int(miss.sum())
+            if n_miss < len(keys):
+                hit = np.flatnonzero(~miss)
+                idx = rows[hit].astype(np.int64)
+                qu = np.empty((len(keys), e[2].shape[1]))
+                qr = np.empty(len(keys))
+                qu[hit] = e[2][idx]
+                qr[hit] = e[3][idx]
+        if n_miss == len(keys):
+            qu, qr = fn.query(pts)
+            self._keep(level, keys, qu, qr)
+        elif n_miss:
+            m = np.flatnonzero(miss)
+            mu, mr = fn.query(pts[m])
+            qu[m] = mu
+            qr[m] = mr
+            self._keep(level, keys[m], mu, mr)
+        self.hits += len(keys) - n_miss
+        self.misses += n_miss
+        return fn.at(pts, qu, qr, cancel_poll=cancel_poll)
+
+    def _keep(self, level, keys: np.ndarray, qu: np.ndarray, qr: np.ndarray) -> None:
+        with self._lock:
+            e = self._levels.get(level)
+            used = 0 if e is None else e[4]
+            need = used + len(keys)
+            cap = max(1024, 1 << int(need - 1).bit_length())
+            row_bytes = 8 * (qu.shape[1] + 1) + 32  # the rows and two table slots at a load of 1/2
+            if cap * row_bytes > self.max_bytes:
+                return
+            others = sum(o[0].nbytes + o[1].nbytes + o[2].nbytes + o[3].nbytes
+                         for lv, o in self._levels.items() if lv != level)
+            for lv in list(self._levels):
+                if others + cap * row_bytes <= self.max_bytes:
+                    break
+                if lv != level:
+                    o = self._levels.pop(lv)
+                    others -= o[0].nbytes + o[1].nbytes + o[2].nbytes + o[3].nbytes
+            if others + cap * row_bytes > self.max_bytes:
+                return
+            if e is None:
+                tk, tv = _fk.new_table(cap)
+                e = [tk, tv, np.empty((cap, qu.shape[1])), np.empty(cap), 0]
+                self._levels[level] = e
+            elif len(e[3]) < need:
+                e[2] = np.concatenate([e[2][:used], np.empty((cap - used, qu.shape[1]))])
+                e[3] = np.concatenate([e[3][:used], np.empty(cap - used)])
+            e[0], e[1] = _fk.grow(e[0], e[1], need)
+            e[2][used:need] = qu
+            e[3][used:need] = qr
+            _fk.insert(e[0], e[1], np.ascontiguousarray(keys, dtype=np.int64),
+                       np.arange(used, need, dtype=np.float64))
+            e[4] = need
 
 
 class Fit:
@@ -198,6 +295,7 @@ class Fit:
         total += 0 if s.gram is None else s.gram.nbytes
         total += 0 if s.eigen is None else s.eigen.nbytes
         total += 0 if s.blend_k is None else s.blend_k.nbytes
+        total += 0 if s.queries is None else s.queries.nbytes
         if s.pou is not None:
             fn = s.pou.fn
             total += fn.cu.nbytes + fn.beta.nbytes + fn.start.nbytes + fn.count.nbytes + s.pou.nbytes
@@ -386,6 +484,28 @@ class Fit:
         cu, cr = split_unit(p.a)
         return p.engine.kernel_matrix(qu, qr, cu, cr, cancel_poll=cancel_poll)
 
+    def _node_values(self, fn, cancel_poll):
+        """``node_f`` for :func:`evaluate_sparse` that keeps the learned features at the grid's nodes
+        in the shared :class:`QueryCache` (a fit that keeps its factors, ``method="nkf"``), or None."""
+        p, s = self._prep, self._shared
+        if s.queries is None or p.phi is None:
+            return None
+        blend = fn if isinstance(fn, BlendedField) else None
+        inner = fn.fn if blend is not None else fn
+        if not (hasattr(inner, "query") and hasattr(inner, "at")):
+            return None
+        cache = s.queries
+
+        def node_f(pts, keys, level):
+            vals = cache.values(inner, pts, keys, level, cancel_poll)
+            if blend is None:
+                return vals
+            b = copy.copy(blend)  # the far field's blend, as BlendedField.__call__ makes it
+            b.fn = _Known(vals)
+            return b(pts, cancel_poll=cancel_poll)
+
+        return node_f
+
     def _mesh(self, track: Tracker, opts: Options, t_start: float) -> Mesh:
         p = self._prep
         resolution, close, trim, min_piece = opts.resolution, opts.close, opts.trim, opts.min_piece
@@ -396,7 +516,8 @@ class Fit:
             track.begin("evaluate")
             fn = self._sol.fn
             return evaluate_sparse(lambda q: fn(q, cancel_poll=track.cancel_poll), resolution,
-                                   cancel_poll=track.cancel_poll, step=track.step, seeds=p.x, close=close)
+                                   cancel_poll=track.cancel_poll, step=track.step, seeds=p.x, close=close,
+                                   node_f=self._node_values(fn, track.cancel_poll))
 
         field_ = run_with_cpu_fallback(evaluate, self._sol.engine)
         sol, norm, x = self._sol, p.norm, p.x
@@ -497,6 +618,10 @@ def mesh_stages(opts: Options, colors: bool, n_points: int = 0) -> list[str]:
     stages += ["clean"] if (opts.trim is not None or opts.min_piece > 0 or removes_floaters(opts, n_points)) else []
     return stages + (["colors"] if colors else [])
 
+
+# Bytes of learned features at grid nodes a kept fit holds for later lambdas (QueryCache): about
+# 140 bytes a node, so the nodes of a mesh at 128 and a preview at 64 (about 160,000) take 22 MB.
+QUERY_CACHE_BYTES = 96 * 2**20
 
 # Solver constants shared with nkf_model.pipeline.reconstruct (which re-exports them).
 # Relative residual at which Falkon's conjugate gradient stops: 1e-6 gave the same IoU and Chamfer as

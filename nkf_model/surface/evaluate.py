@@ -127,6 +127,7 @@ def evaluate_sparse(
     step: Callable[[float], None] | None = None,
     seeds: np.ndarray | None = None,
     close: bool = False,
+    node_f: Callable[[np.ndarray, np.ndarray, tuple], np.ndarray] | None = None,
 ) -> SparseField:
     """Evaluate ``f`` coarse to fine around its zero level set.
 
@@ -149,6 +150,12 @@ def evaluate_sparse(
     close : bool
         Treat the function as positive (outside) on the grid's faces, so that the mesh is capped
         where the zero level set would run out of the grid (a watertight mesh).
+    node_f : callable, optional
+        Called instead of ``f`` as ``node_f(points, keys, level)`` with the same points and chunks,
+        the nodes' :func:`node_keys` (K,) int64 and ``level = (r, cell)`` (cells per side of that
+        level's grid and its cell size): the node ``keys[i]`` of ``level`` is always at ``points[i]``,
+        so a caller can keep what does not change between calls per node (the learned features at the
+        grid's nodes: ``nkf_model.pipeline.fitted``). It must return what ``f(points)`` returns.
 
     Returns
     -------
@@ -171,11 +178,16 @@ def evaluate_sparse(
     def run(ijk, r, expected_rest):
         nonlocal total_done
         out = np.empty(len(ijk))
-        pts = node_positions(ijk, r, finest_cell * top / r)
+        cell = finest_cell * top / r
+        pts = node_positions(ijk, r, cell)
+        nkeys = None if node_f is None else node_keys(ijk, r)
         for s in range(0, len(ijk), chunk):
             if cancel_poll is not None:
                 cancel_poll()
-            out[s : s + chunk] = f(pts[s : s + chunk])
+            if node_f is None:
+                out[s : s + chunk] = f(pts[s : s + chunk])
+            else:
+                out[s : s + chunk] = node_f(pts[s : s + chunk], nkeys[s : s + chunk], (r, cell))
             if step is not None:
                 done = total_done + min(len(ijk), s + chunk)
                 step(done / max(1, done + expected_rest + (len(ijk) - min(len(ijk), s + chunk))))
