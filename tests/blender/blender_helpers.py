@@ -78,3 +78,20 @@ def snapshot(bpy) -> dict:
             entry["attribute_names"] = sorted(a.name for a in data.attributes)
         state[o.name] = entry
     return state
+
+
+def holdable_warm_up(release: threading.Event, record):
+    """A stand-in for ``nkf_model.pipeline.warmup.warm_up``: calls ``record(steps)``, reports 25 %,
+    then waits for ``release`` (or raises ``Cancelled`` once the cancel event is set)."""
+    from nkf_model import Cancelled
+
+    def fake(progress=None, cancel=None, methods=("splines", "nkf"), steps=None):
+        record(steps)
+        progress(0.25, "exact solve, Neural Splines")
+        while not release.wait(0.02):
+            if cancel is not None and cancel.is_set():
+                raise Cancelled("the preparation was cancelled")
+        progress(1.0, "done")
+        return {}
+
+    return fake

@@ -23,11 +23,10 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-from blender_helpers import PKG, ext, fibonacci_sphere, import_ply, write_ply
+from blender_helpers import PKG, ext, fibonacci_sphere, holdable_warm_up, import_ply, write_ply
 from recording_layout import RecordingLayout
 
 import nkf_model.pipeline.warmup as warmup_mod
-from nkf_model import Cancelled
 from nkf_model.options import Options
 
 
@@ -63,15 +62,8 @@ def held(monkeypatch, fresh):
     release = threading.Event()
     calls, compiled = [], []
 
-    def fake(progress=None, cancel=None, methods=("splines", "nkf"), steps=None):
-        calls.append({"steps": steps, "thread": threading.current_thread().name})
-        progress(0.25, "exact solve, Neural Splines")
-        while not release.wait(0.02):
-            if cancel is not None and cancel.is_set():
-                raise Cancelled("the preparation was cancelled")
-        progress(1.0, "done")
-        return {}
-
+    fake = holdable_warm_up(release, lambda steps: calls.append(
+        {"steps": steps, "thread": threading.current_thread().name}))
     real_compile = fresh.compile_bundled
     monkeypatch.setattr(warmup_mod, "warm_up", fake)
     monkeypatch.setattr(fresh, "compile_bundled", lambda **kw: compiled.append(kw) or "")

@@ -9,11 +9,10 @@ import threading
 from types import SimpleNamespace
 
 import pytest
-from blender_helpers import ext
+from blender_helpers import ext, holdable_warm_up
 from recording_layout import RecordingLayout
 
 import nkf_model.pipeline.warmup as warmup_mod
-from nkf_model import Cancelled
 
 
 def _draw(bpy) -> RecordingLayout:
@@ -28,15 +27,7 @@ def held_warm_up(monkeypatch):
     release = threading.Event()
     calls = []
 
-    def fake(progress=None, cancel=None, methods=("splines", "nkf"), steps=None):
-        calls.append(1)
-        progress(0.25, "exact solve, Neural Splines")
-        while not release.wait(0.02):
-            if cancel is not None and cancel.is_set():
-                raise Cancelled("the preparation was cancelled")
-        progress(1.0, "done")
-        return {}
-
+    fake = holdable_warm_up(release, lambda steps: calls.append(1))
     monkeypatch.setattr(warmup_mod, "warm_up", fake)
     yield SimpleNamespace(release=release, calls=calls)
     release.set()
