@@ -1,4 +1,4 @@
-"""The learned features at grid nodes kept for later lambdas (nkf_model.pipeline.fitted.QueryCache):
+"""The learned features at grid nodes kept for later lambdas (nkf_model.pipeline.query_cache.QueryCache):
 a re-mesh that reuses them gives what a fresh run gives, to the bit."""
 
 from __future__ import annotations
