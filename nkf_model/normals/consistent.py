@@ -29,7 +29,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
-from .edges import across_significant
+from ._propagate import propagate_signs
+from .edges import across_significant, relation_matrix
 
 # Neighbours per point in the graph (Open3D's documented example uses 15 too).
 CONSISTENT_K = 15
@@ -43,7 +44,7 @@ CROSSING = 0.5
 # (the orientation: 2.5 %); the simulated scans came out the same either way.
 SMOOTH = 0.9
 # The propagated signs are kept when they raise the agreement with the orientation's edge relations
-# (-s.A.s, :func:`nkf_model.normals.estimate._relations`) by more than this share. Measured: 0.36 to
+# (-s.A.s, :func:`nkf_model.normals.edges.relation_matrix`) by more than this share. Measured: 0.36 to
 # 9 % on 5 simulated scans (all better signs), at most 0.009 % on 7 sampled `val` objects.
 ENERGY_GAIN = 0.001
 # ... and when they flip at most this share of the points. Where the propagation crossed a wall thinner
@@ -129,9 +130,7 @@ def consistent_signs(points: np.ndarray, normals: np.ndarray, reference: np.ndar
     relation = np.ones(n)
     child = np.flatnonzero(pred >= 0)
     relation[child] = np.where(np.einsum("ij,ij->i", nrm[child], nrm[pred[child]]) >= 0, 1.0, -1.0)
-    from .estimate import _propagate_signs  # the orientation's compiled loop (estimate imports this module)
-
-    signs = _propagate_signs(order, pred, relation, np.ones(n))
+    signs = propagate_signs(order, pred, relation, np.ones(n))
     if reference is not None:
         ref = np.asarray(reference, dtype=np.float64)
         agree = np.bincount(labels, weights=signs * ref, minlength=n_pieces)
@@ -156,8 +155,6 @@ def tangent_plane_check(state, sign: np.ndarray, cancel_poll=None) -> tuple[np.n
     flips : int
         Points whose sign changed (0 when the propagated signs were not kept).
     """
-    from .estimate import _relations
-
     if cancel_poll is not None:
         cancel_poll()
     n = len(sign)
@@ -175,7 +172,7 @@ def tangent_plane_check(state, sign: np.ndarray, cancel_poll=None) -> tuple[np.n
     candidate = sign * flip
     if cancel_poll is not None:
         cancel_poll()
-    a = _relations(state.graph, state.points, state.normals, state.noise)
+    a = relation_matrix(state.graph, state.points, state.normals, state.noise)
     before = -float(sign @ (a @ sign))
     after = -float(candidate @ (a @ candidate))
     if before - after > ENERGY_GAIN * abs(before):

@@ -35,3 +35,17 @@ def edge_relation(points, normals, i, j, noise=None) -> np.ndarray:
     smooth = np.where(dot >= 0, 1.0, -1.0) * np.where(across, -1.0, 1.0)
     convex = -np.where(a >= 0, 1.0, -1.0) * np.where(b >= 0, 1.0, -1.0)
     return np.where(np.abs(dot) >= 0.5, smooth, convex)
+
+
+def relation_matrix(g, points, normals, noise=None):
+    """Signed edge weights (sparse, like the neighbour graph ``g`` of costs): ``w_ij * r_ij`` with
+    ``r_ij`` from :func:`edge_relation` (+1 when the two estimated normals should keep their relative
+    sign, -1 when one of them should flip) and ``w_ij = exp(-cost_ij / 0.2)`` (confident edges weigh
+    about 1, ambiguous ones about 0)."""
+    from scipy.sparse import coo_matrix
+
+    g = g.tocoo()
+    i, j = g.row, g.col
+    rel = edge_relation(points, normals, i, j, noise)
+    w = np.exp(-g.data / 0.2)
+    return coo_matrix((w * rel, (i, j)), shape=g.shape).tocsr()

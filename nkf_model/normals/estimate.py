@@ -71,7 +71,8 @@ from scipy.spatial import cKDTree
 
 from ..errors import InvalidParameterError
 from . import sign_check
-from .edges import SIG_NOISE, WINDING_EXCLUDE, across_significant, edge_relation
+from ._propagate import propagate_signs as _propagate_signs
+from .edges import SIG_NOISE, WINDING_EXCLUDE, across_significant, edge_relation, relation_matrix
 
 DEFAULT_K = 16  # neighbours for the PCA fit
 # Above this many points the signs come from a voxel-averaged copy of at most this many points
@@ -242,29 +243,6 @@ def _graph(points, normals, tree, k, cancel_poll: CancelPoll, noise=None):
     return g.maximum(g.T)  # symmetric (an edge found from either end)
 
 
-try:
-    import numba as _nb
-
-    @_nb.njit(cache=True, nogil=True)
-    def _propagate_signs(order, pred, relation, start):  # pragma: no cover - compiled
-        sign = start.copy()
-        for pos in range(order.shape[0]):
-            v = order[pos]
-            p = pred[v]
-            if p >= 0:
-                sign[v] = sign[p] * relation[v]
-        return sign
-
-except ImportError:  # pragma: no cover - numba is a declared dependency
-
-    def _propagate_signs(order, pred, relation, start):
-        sign = start.copy()
-        for v in order:
-            if pred[v] >= 0:
-                sign[v] = sign[pred[v]] * relation[v]
-        return sign
-
-
 def fibonacci_directions(n: int, upper_only: bool = False) -> np.ndarray:
     """``n`` unit vectors (n, 3) spread evenly over the sphere (or the upper half, z > 0)."""
     i = np.arange(n) + 0.5
@@ -361,22 +339,11 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
 CONSENSUS_ROUNDS = 30
 
 
-def _relations(g, points, normals, noise=None):
-    """Signed edge weights (sparse, like ``g``): ``w_ij * r_ij`` with ``r_ij = +1`` when the two
-    estimated normals should keep their relative sign, ``-1`` when one of them should flip, and
-    ``w_ij = exp(-cost_ij / 0.2)`` (confident edges weigh about 1, ambiguous ones about 0)."""
-    g = g.tocoo()
-    i, j = g.row, g.col
-    rel = edge_relation(points, normals, i, j, noise)
-    w = np.exp(-g.data / 0.2)
-    return coo_matrix((w * rel, (i, j)), shape=g.shape).tocsr()
-
-
 def _consensus(g, points, normals, sign, votes, cancel_poll: CancelPoll, rounds: int = CONSENSUS_ROUNDS, noise=None):
     """Flip isolated wrong signs: repeatedly give each point the sign its neighbours and its own
     view votes agree on (iterated conditional modes on ``-sum_ij A_ij s_i s_j - sum_i v_i s_i``).
     Only points whose evidence clearly disagrees with their sign flip, so the iteration settles."""
-    a = _relations(g, points, normals, noise)
+    a = relation_matrix(g, points, normals, noise)
     s = sign.copy()
     for _ in range(rounds):
         if cancel_poll is not None:
@@ -716,7 +683,7 @@ def orient_normals(
 def _checked(sign, state, info, learned: bool, cancel_poll: CancelPoll):
     """Oriented normals (N, 3) and ``info``, after the learned sign check where it applies and the
     tangent-plane check (step f)."""
-    from .consistent import tangent_plane_check
+    from .consistent import tangent_plane_check  # SciPy's graph module: only when estimating
 
     if learned and info.orientation == "outward":
         sign, flips = sign_check.flip_wrong(state, cancel_poll=cancel_poll)
