@@ -26,10 +26,10 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ._propagate import propagate_signs
+from ._propagate import first_points, propagate_signs, spanning_order
 from .edges import across_significant, relation_matrix
 
 # Neighbours per point in the graph (Open3D's documented example uses 15 too).
@@ -116,18 +116,8 @@ def consistent_signs(points: np.ndarray, normals: np.ndarray, reference: np.ndar
     w = 1.0 - np.abs(cos) + 1e-9
     g = coo_matrix((w, (rows, cols)), shape=(n, n)).tocsr()
     g = g.maximum(g.T)
-    mst = minimum_spanning_tree(g).tocoo()
-    n_pieces, labels = connected_components(mst, directed=False)
-    # One traversal for all pieces: a virtual root (index n) joined to each piece's first point.
-    first = np.full(n_pieces, -1, dtype=np.int64)
-    first[labels[::-1]] = np.arange(n)[::-1]
-    full = coo_matrix((np.concatenate([mst.data, np.full(n_pieces, 1e-12)]),
-                       (np.concatenate([mst.row, np.full(n_pieces, n)]), np.concatenate([mst.col, first]))),
-                      shape=(n + 1, n + 1)).tocsr()
-    order, pred = breadth_first_order(full, n, directed=False, return_predecessors=True)
-    order = order[order != n].astype(np.int64)
-    pred = pred[:n].astype(np.int64)
-    pred[(pred == n) | (pred < 0)] = -1
+    n_pieces, labels = connected_components(g, directed=False)
+    order, pred = spanning_order(g, first_points(labels, n_pieces))
     relation = np.ones(n)
     child = np.flatnonzero(pred >= 0)
     relation[child] = np.where(np.einsum("ij,ij->i", nrm[child], nrm[pred[child]]) >= 0, 1.0, -1.0)
@@ -162,8 +152,6 @@ def tangent_plane_check(state, sign: np.ndarray, cancel_poll=None) -> tuple[np.n
     if n < max(MIN_POINTS, CONSISTENT_K + 2):
         return sign, 0
     oriented = state.normals * sign[:, None]
-    # Points with another layer just above or below their plane (a wall thinner than the spacing)
-    # keep the orientation's sign: their neighbours across the wall are not told apart by offset.
     flip, _ = consistent_signs(state.points, oriented, reference=np.ones(n), noise=state.noise)
     if not (flip < 0).any():
         return sign, 0

@@ -71,6 +71,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InvalidParameterError
 from . import sign_check
+from ._propagate import first_points, spanning_order
 from ._propagate import propagate_signs as _propagate_signs
 from .edges import SIG_NOISE, WINDING_EXCLUDE, across_significant, edge_relation, relation_matrix
 
@@ -480,29 +481,14 @@ def _seeded_propagation(g, points, normals, seed_sign, noise=None):
     neighbour graph ``g`` and takes its sign from its parent. Pieces without any seed start from
     their first point with its current sign. Returns signs (N,) and the number of pieces.
     """
-    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+    from scipy.sparse.csgraph import connected_components
 
     n = normals.shape[0]
     n_pieces, labels = connected_components(g, directed=False)
     seeded_piece = np.zeros(n_pieces, dtype=bool)
     seeded_piece[labels[seed_sign != 0]] = True
-    anchors = np.flatnonzero(seed_sign != 0)
-    first = np.full(n_pieces, -1, dtype=np.int64)
-    first[labels[::-1]] = np.arange(n)[::-1]
-    extra = first[~seeded_piece]
-    roots = np.concatenate([anchors, extra])
-    g = g.tocoo()
-    tiny = 1e-12
-    r = np.concatenate([g.row, np.full(len(roots), n)])
-    c = np.concatenate([g.col, roots])
-    w = np.concatenate([g.data, np.full(len(roots), tiny)])
-    full = coo_matrix((w, (r, c)), shape=(n + 1, n + 1)).tocsr()
-    mst = minimum_spanning_tree(full)
-    order, pred = breadth_first_order(mst, n, directed=False, return_predecessors=True)
-    pred = pred.astype(np.int64)
-    pred[pred == n] = -1
-    pred[pred < 0] = -1
-    order = order[order != n].astype(np.int64)
+    roots = np.concatenate([np.flatnonzero(seed_sign != 0), first_points(labels, n_pieces)[~seeded_piece]])
+    order, pred = spanning_order(g, roots)
     start = np.where(seed_sign != 0, seed_sign, 1.0)
     relation = np.ones(n)
     child = np.flatnonzero(pred >= 0)
