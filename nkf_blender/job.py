@@ -15,6 +15,7 @@ from nkf_model.options import Options
 from nkf_model.pipeline.stages import STAGE_LABELS
 
 from .devices import describe as describe_device
+from .import_failure import explain as explain_import_failure
 
 __all__ = ["ReconstructJob", "STAGE_LABELS", "PENDING", "RUNNING", "DONE", "FAILED", "CANCELLED"]
 
@@ -215,10 +216,8 @@ class ReconstructJob:
             return
         if user_error:
             self.error = str(exc)
-        elif isinstance(exc, ImportError):
-            self.error = (
-                f"a Python package is missing ({exc}); install the dependencies in the add-on preferences"
-            )
+        elif isinstance(exc, ImportError):  # which package, from which folder, and what to do
+            self.error = explain_import_failure(exc)
         elif isinstance(exc, MemoryError):
             self.error = "out of memory: lower Resolution or Max Points, or set a Memory Budget in the preferences"
         else:

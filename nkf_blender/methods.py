@@ -24,6 +24,7 @@ import numpy as np
 from nkf_model.options import DEFAULT_METHOD, SHIPPED_WEIGHTS
 
 from . import deps
+from .import_failure import explain as explain_import_failure
 
 # Blender enum identifier -> nkf_model's value, in the items' stored order (never reorder: a .blend
 # file stores an enum property as the item's number).
@@ -57,7 +58,7 @@ def method_status(method: str) -> tuple[bool, str]:
     try:
         import nkf_model
     except ImportError as exc:
-        return False, f"nkf_model cannot be imported: {exc}"
+        return False, explain_import_failure(exc)
     ask = getattr(nkf_model, "method_available", None)
     if callable(ask):
         try:

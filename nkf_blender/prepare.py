@@ -30,19 +30,18 @@ meanwhile (:func:`stop` cancels between and inside the steps and joins the threa
 
 from __future__ import annotations
 
-import json
 import os
-import re
 import sys
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from .import_failure import bundled_folder, explain
+
 IDLE, RUNNING, DONE, FAILED, CANCELLED = "idle", "running", "done", "failed", "cancelled"
 PREPARE, LOAD = "prepare", "load"  # Status.kind: the first-time preparation, or the short load step
 MARKER = "prepared.txt"
-MANIFEST = "blender_manifest.toml"
 THREAD_NAME = "nkf-prepare"
 # Worker threads of the add-on that run the solver: the background step gives way to them.
 SOLVER_THREADS = ("nkf-reconstruct", "nkf-factorize")
@@ -114,10 +113,6 @@ def is_prepared(folder) -> bool:
         return False
 
 
-def _canon(name: str) -> str:
-    return re.sub(r"[-_.]+", "-", name).lower()
-
-
 def blender_wheel_folder(user_folder) -> Path | None:
     """Where Blender unpacks the extensions' wheels, found from this extension's user folder
     ``<extensions>/.user/<repo>/<id>/cache`` (``bpy.utils.extension_path_user``):
@@ -131,43 +126,16 @@ def blender_wheel_folder(user_folder) -> Path | None:
     return p.parents[3] / ".local" / "lib" / "python{}.{}".format(*sys.version_info[:2]) / "site-packages"
 
 
-def _unpacked(info: Path) -> bool:
-    """False for an editable install's ``.dist-info`` (PEP 610): its files are elsewhere."""
-    try:
-        return not json.loads((info / "direct_url.json").read_text()).get("dir_info", {}).get("editable", False)
-    except (OSError, ValueError, AttributeError):
-        return True
-
-
 def bundled_files(ext_dir=None, paths=None) -> tuple[Path | None, list[Path]]:
-    """The folder Blender unpacked this extension's wheels into (the first of ``paths``, default
-    ``sys.path``, that holds the ``.dist-info`` of a wheel listed in the extension's manifest,
-    editable installs left out) and the ``.py`` files those wheels put there (from their
-    ``RECORD``: the top-level packages, walked, and modules); ``(None, [])`` when there is none
-    (no manifest, no wheels)."""
-    import tomllib
-
-    ext_dir = Path(__file__).parent if ext_dir is None else Path(ext_dir)
-    try:
-        wheels = tomllib.loads((ext_dir / MANIFEST).read_text()).get("wheels", [])
-    except (OSError, ValueError):
+    """The folder Blender unpacked this extension's wheels into
+    (:func:`~.import_failure.bundled_folder`: the first of ``paths``, default ``sys.path``, that holds
+    the ``.dist-info`` of a wheel listed in the extension's manifest, editable installs left out) and
+    the ``.py`` files those wheels put there (from their ``RECORD``: the top-level packages, walked,
+    and modules); ``(None, [])`` when there is none (no manifest, no wheels)."""
+    folder, infos = bundled_folder(ext_dir, paths)
+    if folder is None:
         return None, []
-    wanted = set()
-    for w in wheels:
-        parts = Path(w).name.split("-")
-        if len(parts) >= 2:
-            wanted.add((_canon(parts[0]), parts[1]))
-    for entry in sys.path if paths is None else paths:
-        folder = Path(entry or ".")
-        try:
-            infos = [d for d in folder.glob("*.dist-info")
-                     if (_canon(d.name[:-10].split("-", 1)[0]), d.name[:-10].split("-", 1)[-1]) in wanted
-                     and _unpacked(d)]
-        except OSError:
-            continue
-        if infos:
-            return folder, _files_of(folder, infos)
-    return None, []
+    return folder, _files_of(folder, infos)
 
 
 def _files_of(folder: Path, infos) -> list[Path]:
@@ -248,6 +216,8 @@ def _work(folder, kind: str) -> None:
     except Exception as exc:  # one line for the panel; Blender keeps working
         if type(exc).__name__ == "Cancelled":
             _set(state=CANCELLED, seconds=time.perf_counter() - t0)
+        elif isinstance(exc, ImportError):  # which package, from which folder, and what to do
+            _set(state=FAILED, error=explain(exc), seconds=time.perf_counter() - t0)
         else:
             _set(state=FAILED, error=f"{type(exc).__name__}: {exc}".splitlines()[0],
                  seconds=time.perf_counter() - t0)

@@ -120,13 +120,14 @@ def test_first_time_preparation_keeps_its_label_and_compiles(scene, bpy_module, 
 
 def test_a_failed_load_step_says_so(scene, bpy_module, fresh, monkeypatch):
     def broken(progress=None, cancel=None, methods=(), steps=None):
-        raise ImportError("No module named 'llvmlite'")
+        raise ModuleNotFoundError("No module named 'llvmlite'", name="llvmlite")
 
     monkeypatch.setattr(warmup_mod, "warm_up", broken)
     _mark_prepared(fresh)
     assert ext()._start_prepare() in (0.5, None) and fresh.wait(10)
     assert fresh.status().state == "failed" and fresh.status().kind == "load"
-    assert "Loading the solver failed: ImportError: No module named 'llvmlite'" in " ".join(_draw(bpy_module).alerts())
+    alerts = " ".join(_draw(bpy_module).alerts())
+    assert "Loading the solver failed: the Python package llvmlite is missing" in alerts, alerts
 
 
 def test_disabling_the_add_on_cancels_the_load_step(bpy_module, addon, held):

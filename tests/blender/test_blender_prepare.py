@@ -54,14 +54,16 @@ def test_runs_once_with_progress_in_the_panel(scene, bpy_module, held_warm_up, t
 
 def test_failure_is_one_line_in_the_panel_and_leaves_no_marker(scene, bpy_module, monkeypatch, tmp_path):
     def broken(progress=None, cancel=None, methods=()):
-        raise ImportError("No module named 'llvmlite'\n(more lines)")
+        raise ModuleNotFoundError("No module named 'llvmlite'\n(more lines)", name="llvmlite")
 
     monkeypatch.setattr(warmup_mod, "warm_up", broken)
     prepare = ext("prepare")
     assert prepare.start(tmp_path, force=True) and prepare.wait(10)
     st = prepare.status()
-    assert st.state == "failed" and st.error == "ImportError: No module named 'llvmlite'"
-    assert "Preparing the solver failed: ImportError: No module named 'llvmlite'" in " ".join(
+    assert st.state == "failed" and "\n" not in st.error
+    assert st.error.startswith("the Python package llvmlite is missing (ModuleNotFoundError: No module named "
+                               "'llvmlite')"), st.error
+    assert "Preparing the solver failed: the Python package llvmlite is missing" in " ".join(
         _draw(bpy_module).alerts())
     assert not (tmp_path / prepare.MARKER).exists()
 

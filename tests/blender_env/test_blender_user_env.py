@@ -103,3 +103,11 @@ def test_blender_user_installs_enables_and_reconstructs(version, linux_zip, tmp_
         assert got["prepare_state"] == "done"
         markers = list(user.rglob("prepared.txt"))
         assert len(markers) == 1 and "numba 0.68.1" in markers[0].read_text()
+    if prepared:  # another SciPy first on the path: one line naming it, its folder and the fix
+        got = _step(py, "shadowed", linux_zip, user, tmp_path)
+        assert got["report"].startswith(
+            f"Error: NKF: cannot import scipy: another copy of it, in {got['other']}, comes before the add-on's "
+            "own on Python's search path and fails (ImportError: numpy.core.multiarray failed to import)"
+        ), got["report"]
+        assert "\n" not in got["report"] and got["scene_unchanged"], got
+

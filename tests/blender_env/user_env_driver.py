@@ -12,7 +12,11 @@ Steps (each a fresh process, as a user's Blender sessions are):
 * ``reconstruct``: enable, import the sample PLY, run Reconstruct with each of ``METHODS``
   (comma-separated, default ``SPLINES,NKF,SPLINES,NKF``), check the meshes and the report;
   ``reconstruct-prepared`` first runs the add-on's first-time preparation (what the UI starts
-  after enabling) and times it separately.
+  after enabling) and times it separately;
+* ``shadowed``: a folder holding another SciPy, one that fails to import the way a SciPy built for
+  another NumPy does, is put first on ``sys.path`` (as ``PYTHONPATH``, a user site-packages or
+  another add-on would), then enable and Reconstruct: the report must name the package, that
+  folder and the fix, and the scene must be as it was.
 """
 
 from __future__ import annotations
@@ -111,6 +115,25 @@ def main(step: str, zip_path: str, sample: str, out_json: str, methods: str = "S
         import nkf_model
 
         result["nkf_model_path"] = os.path.dirname(nkf_model.__file__)
+    elif step == "shadowed":
+        other = os.path.join(os.path.dirname(os.path.abspath(out_json)), "other-site-packages")
+        os.makedirs(os.path.join(other, "scipy"), exist_ok=True)
+        with open(os.path.join(other, "scipy", "__init__.py"), "w") as fh:
+            fh.write("raise ImportError('numpy.core.multiarray failed to import')\n")
+        sys.path.insert(0, other)
+        result["other"] = other
+        result.update(_enable())
+        bpy.ops.wm.read_homefile(use_empty=True)
+        bpy.ops.wm.ply_import(filepath=sample)
+        src = bpy.context.active_object
+        before = sorted((o.name, len(o.data.vertices)) for o in bpy.data.objects)
+        try:
+            res = bpy.ops.object.nkf_reconstruct(method="SPLINES", resolution=64, device="CPU")
+            result["report"] = f"no error: {res}"
+        except RuntimeError as exc:
+            result["report"] = str(exc).strip()
+        result["scene_unchanged"] = sorted((o.name, len(o.data.vertices)) for o in bpy.data.objects) == before
+        result["source"] = src.name
     else:
         raise SystemExit(f"unknown step {step!r}")
     with open(out_json, "w") as fh:
