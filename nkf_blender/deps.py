@@ -108,6 +108,7 @@ IMPORTS = {
     "threadpoolctl": "threadpoolctl",
     "numba": "numba",
     "safetensors": "safetensors.numpy",
+    "torch": "torch",  # optional (the GPU); a half-finished install is found but does not import
 }
 
 _VERIFY = """

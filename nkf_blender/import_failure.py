@@ -193,5 +193,8 @@ def explain(exc: BaseException, paths=None, ext_dir=None) -> str:
     if bundled is not None and folder == bundled:
         return f"cannot import the add-on's bundled {top} from {folder} ({why}); reinstall the add-on{note}"
     where = f" from {folder}" if folder is not None else ""
+    if top == "torch":  # optional, for the GPU: installed by the preferences' own button
+        return (f"cannot import torch (PyTorch){where} ({why}){note}; install GPU support (PyTorch) again in "
+                "the add-on preferences, or remove that copy if another program put it there")
     return (f"cannot import {top}{where} ({why}){note}; install the dependencies in the add-on preferences, "
             "or remove that copy if another program put it there")

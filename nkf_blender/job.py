@@ -214,7 +214,9 @@ class ReconstructJob:
         if cancelled or self.cancel_event.is_set():
             self.state = CANCELLED
             return
-        if user_error:
+        if user_error and isinstance(exc.__cause__, ImportError):  # e.g. the GPU asked for, PyTorch broken
+            self.error = f"{str(exc).split(' (', 1)[0]}: {explain_import_failure(exc.__cause__)}"
+        elif user_error:
             self.error = str(exc)
         elif isinstance(exc, ImportError):  # which package, from which folder, and what to do
             self.error = explain_import_failure(exc)

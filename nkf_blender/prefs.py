@@ -16,7 +16,7 @@ import textwrap
 import bpy
 from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
 
-from . import deps, installer, methods
+from . import deps, import_failure, installer, methods
 
 ADDON = __package__
 POLL_INTERVAL = 0.5
@@ -216,6 +216,12 @@ class NKF_OT_cancel_install(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def _from(name: str) -> str:
+    """" from FOLDER" for the folder ``import name`` uses, or ""."""
+    where = import_failure.origin(name)
+    return f" from {where}" if where is not None else ""
+
+
 class NKF_OT_check_dependencies(bpy.types.Operator):
     """Look for the Python packages again (after installing them yourself)"""
 
@@ -229,7 +235,8 @@ class NKF_OT_check_dependencies(bpy.types.Operator):
         if st.ready:  # found: now import them for real, in a separate process (a broken one is named)
             broken = deps.verify([n for n in deps.IMPORTS if st.found.get(n)])
             if broken:
-                self.report({"WARNING"}, "NKF: cannot import " + "; ".join(f"{n} ({w})" for n, w in broken.items()))
+                self.report({"WARNING"}, "NKF: cannot import " + "; ".join(
+                    f"{n}{_from(n)} ({w})" for n, w in broken.items()))
                 return {"FINISHED"}
         msg = st.message() or "all Python packages found"
         self.report({"INFO"} if st.ready else {"WARNING"}, f"NKF: {msg}")

@@ -43,3 +43,27 @@ def test_driver_check_gates_the_torch_import(monkeypatch):
     torch = pytest.importorskip("torch")
     monkeypatch.setattr(engines, "cuda_driver_present", lambda: True)
     assert engines.cuda_available() is bool(torch.cuda.is_available())
+
+
+def test_cuda_asked_for_without_a_driver_says_so_without_importing_torch():
+    code = ("import sys\nfrom nkf_model.kernel import engines\nengines.cuda_driver_present = lambda: False\n"
+            "try:\n    engines.select_engine('cuda')\nexcept Exception as exc:\n    print(exc)\n"
+            "print('torch' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.splitlines() == [
+        "device 'cuda' was asked for, but this computer has no NVIDIA driver (no CUDA device); use 'cpu' or 'auto'",
+        "False",
+    ]
+
+
+def test_cuda_asked_for_with_a_pytorch_that_does_not_import(monkeypatch):
+    """A half-installed PyTorch: the message says PyTorch cannot be imported, with its error, and
+    carries the ImportError as its cause (the add-on names the folder from it)."""
+    monkeypatch.setattr(engines, "cuda_driver_present", lambda: True)
+    monkeypatch.setitem(sys.modules, "torch", None)  # `import torch` now raises ImportError
+    with pytest.raises(engines.MethodUnavailableError) as info:
+        engines.select_engine("cuda")
+    assert str(info.value).startswith("device 'cuda' was asked for, but PyTorch cannot be imported (ModuleNotFoundError: import of torch halted")
+    assert isinstance(info.value.__cause__, ImportError)
+    assert engines.cuda_available() is False

@@ -239,15 +239,7 @@ def cuda_available() -> bool:
     """True when PyTorch is installed and sees a CUDA device. PyTorch is imported only when an
     NVIDIA driver is there (:func:`cuda_driver_present`) or it already was, so the CPU path of a
     machine without a GPU never pays for importing it."""
-    import sys
-
-    if "torch" not in sys.modules and not cuda_driver_present():
-        return False
-    try:
-        import torch
-    except ImportError:
-        return False
-    return bool(torch.cuda.is_available())
+    return cuda_problem()[0] == ""
 
 
 _CPU_ENGINE: Engine | None = None
@@ -278,7 +270,24 @@ def select_engine(device: str = "auto") -> Engine:
     if cuda_available():
         return TorchEngine("cuda")
     if device == "cuda":
-        raise MethodUnavailableError(
-            "device 'cuda' was asked for, but PyTorch sees no CUDA device; use 'cpu' or 'auto'"
-        )
+        reason, cause = cuda_problem()
+        raise MethodUnavailableError(f"device 'cuda' was asked for, but {reason}; use 'cpu' or 'auto'") from cause
     return cpu_engine()
+
+
+def cuda_problem() -> tuple[str, ImportError | None]:
+    """Why CUDA cannot be used, in words, and the ``ImportError`` of PyTorch when that is the
+    reason (a missing or half-installed PyTorch): no NVIDIA driver on this machine (PyTorch is
+    then not imported), PyTorch that cannot be imported, or PyTorch that sees no CUDA device."""
+    import sys
+
+    if "torch" not in sys.modules and not cuda_driver_present():
+        return "this computer has no NVIDIA driver (no CUDA device)", None
+    try:
+        import torch
+    except ImportError as exc:
+        line = (f"{type(exc).__name__}: {exc}".splitlines() or [""])[0]
+        return f"PyTorch cannot be imported ({line})", exc
+    if torch.cuda.is_available():
+        return "", None
+    return "PyTorch sees no CUDA device", None

@@ -33,4 +33,8 @@ def test_check_button_reports_a_package_that_does_not_import(addon, bpy_module, 
     monkeypatch.setitem(deps.IMPORTS, "scipy", "brokenpkg")  # scipy is found, but "its import" fails
     assert bpy_module.ops.nkf.check_dependencies() == {"FINISHED"}
     out = capsys.readouterr().out
-    assert "NKF: cannot import scipy (ImportError: libgfortran.so.5: cannot open shared object file)" in out
+    import scipy
+
+    where = ext("import_failure").origin("scipy")  # the folder the import uses, named for the user
+    assert where is not None and str(where) in scipy.__file__
+    assert f"NKF: cannot import scipy from {where} (ImportError: libgfortran.so.5: cannot open shared object file)" in out

@@ -109,3 +109,30 @@ def test_a_job_that_fails_to_import_reports_the_explanation(addon, monkeypatch, 
     assert job.state == job_mod.FAILED
     assert job.error.startswith(f"cannot import scipy from {other.resolve()} (ImportError: numpy.core"), job.error
 
+
+
+def test_gpu_with_a_half_installed_pytorch_names_it_and_its_folder(addon, monkeypatch, tmp_path):
+    """What a PyTorch install stopped halfway leaves: a ``torch`` folder whose import fails. Asked
+    for the GPU, the job's one line says PyTorch cannot be imported, from where, and what to do."""
+    import numpy as np
+    from nkf_model.kernel import engines
+    from nkf_model.options import Options
+
+    other = tmp_path / "site-packages"
+    (other / "torch").mkdir(parents=True)
+    (other / "torch" / "__init__.py").write_text(
+        "raise ImportError('libtorch_cpu.so: cannot open shared object file: No such file or directory')\n")
+    monkeypatch.delitem(sys.modules, "torch", raising=False)
+    monkeypatch.syspath_prepend(str(other))
+    monkeypatch.setattr(engines, "cuda_driver_present", lambda: True)
+    with pytest.raises(engines.MethodUnavailableError) as info:
+        engines.select_engine("cuda")
+    job_mod = ext("job")
+    job = job_mod.ReconstructJob(np.zeros((10, 3)), None, Options())
+    job._fail(info.value)
+    assert job.state == job_mod.FAILED
+    assert job.error == (
+        f"device 'cuda' was asked for, but PyTorch cannot be imported: cannot import torch (PyTorch) from "
+        f"{other.resolve()} (ImportError: libtorch_cpu.so: cannot open shared object file: No such file or "
+        "directory); install GPU support (PyTorch) again in the add-on preferences, or remove that copy if "
+        "another program put it there"), job.error

@@ -110,4 +110,16 @@ def test_blender_user_installs_enables_and_reconstructs(version, linux_zip, tmp_
             "own on Python's search path and fails (ImportError: numpy.core.multiarray failed to import)"
         ), got["report"]
         assert "\n" not in got["report"] and got["scene_unchanged"], got
+        # What a PyTorch install stopped halfway leaves: named by Check Again; the CPU still works.
+        got = _step(py, "torch-halfway", linux_zip, user, tmp_path)
+        assert got["check_report"] == (f"Warning: NKF: cannot import torch from {got['site']} (ImportError: "
+                                       "libtorch_cpu.so: cannot open shared object file: No such file or directory)"
+                                       ), got["check_report"]
+        assert got["splines"]["report"].endswith(("thread", "threads")), got["splines"]
+        assert got["gpu_report"] in (
+            "Error: NKF: device 'cuda' was asked for, but this computer has no NVIDIA driver (no CUDA device); "
+            "use 'cpu' or 'auto'",
+        ) or got["gpu_report"].startswith(
+            "Error: NKF: device 'cuda' was asked for, but PyTorch cannot be imported: cannot import torch (PyTorch) "
+            f"from {got['site']} (ImportError: libtorch_cpu.so"), got["gpu_report"]
 

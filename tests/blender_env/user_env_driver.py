@@ -16,7 +16,11 @@ Steps (each a fresh process, as a user's Blender sessions are):
 * ``shadowed``: a folder holding another SciPy, one that fails to import the way a SciPy built for
   another NumPy does, is put first on ``sys.path`` (as ``PYTHONPATH``, a user site-packages or
   another add-on would), then enable and Reconstruct: the report must name the package, that
-  folder and the fix, and the scene must be as it was.
+  folder and the fix, and the scene must be as it was;
+* ``torch-halfway``: what a PyTorch install that stopped halfway leaves in the add-on's own
+  ``site-packages`` (a ``torch`` folder whose import fails, its ``.dist-info``): **Check Again** in
+  the preferences must name it, Neural Splines on the CPU must still work, and a run on the GPU
+  must fail with one line naming PyTorch and its folder.
 """
 
 from __future__ import annotations
@@ -134,6 +138,29 @@ def main(step: str, zip_path: str, sample: str, out_json: str, methods: str = "S
             result["report"] = str(exc).strip()
         result["scene_unchanged"] = sorted((o.name, len(o.data.vertices)) for o in bpy.data.objects) == before
         result["source"] = src.name
+    elif step == "torch-halfway":
+        import contextlib
+        import io
+
+        result.update(_enable())
+        prefs = importlib.import_module(f"{PKG}.prefs")
+        site = prefs.user_site(create=True)
+        os.makedirs(os.path.join(site, "torch"), exist_ok=True)
+        os.makedirs(os.path.join(site, "torch-2.13.0.dist-info"), exist_ok=True)
+        with open(os.path.join(site, "torch", "__init__.py"), "w") as fh:
+            fh.write("raise ImportError('libtorch_cpu.so: cannot open shared object file: No such file or directory')\n")
+        result["site"] = site
+        prefs.apply_paths(prefs.get_prefs(bpy.context))
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            result["check"] = sorted(bpy.ops.nkf.check_dependencies())
+        result["check_report"] = out.getvalue().strip()
+        result["splines"] = _reconstruct(bpy, sample, "SPLINES")
+        try:
+            res = bpy.ops.object.nkf_reconstruct(method="SPLINES", resolution=64, device="GPU")
+            result["gpu_report"] = f"no error: {res}"
+        except RuntimeError as exc:
+            result["gpu_report"] = str(exc).strip()
     else:
         raise SystemExit(f"unknown step {step!r}")
     with open(out_json, "w") as fh:
