@@ -267,10 +267,10 @@ def select_engine(device: str = "auto") -> Engine:
         raise InvalidParameterError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
     if device == "cpu":
         return cpu_engine()
-    if cuda_available():
+    reason, cause = cuda_problem()  # one look (it may import PyTorch): both the answer and the why
+    if not reason:
         return TorchEngine("cuda")
     if device == "cuda":
-        reason, cause = cuda_problem()
         raise MethodUnavailableError(f"device 'cuda' was asked for, but {reason}; use 'cpu' or 'auto'") from cause
     return cpu_engine()
 
