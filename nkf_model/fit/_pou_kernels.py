@@ -14,7 +14,7 @@ import math
 import numba as nb
 import numpy as np
 
-from ..kernel._numba_kernels import _g, _g_acute, _sum4
+from ..kernel._numba_kernels import _g, _sum4
 
 _OPTS = dict(nogil=True, cache=True, fastmath={"contract", "reassoc", "nsz"})
 
@@ -71,11 +71,10 @@ def gram_general(u, r, diag):  # pragma: no cover - compiled
 
 
 @nb.njit(inline="always", **_OPTS)
-def _sum12(qu, i, cu, beta, j0, j1, acute):
+def _sum12(qu, i, cu, beta, j0, j1):
     """sum_j beta[j] g(|qu[i] - c[j]|^2) over centres j0..j1 of 12-D unit vectors (``cu`` by columns,
     (12, C)): the learned kernel's ``[x : phi : 1]``. One pass over the centres that LLVM vectorises;
-    the generic loop over a run-time dimension in :func:`pou_sum` did not (5x slower). ``acute``:
-    every pair is at most 90 degrees apart, so the branch-free angle term applies."""
+    the generic loop over a run-time dimension in :func:`pou_sum` did not (5x slower)."""
     q0 = qu[i, 0]
     q1 = qu[i, 1]
     q2 = qu[i, 2]
@@ -116,8 +115,7 @@ def _sum12(qu, i, cu, beta, j0, j1, acute):
         t11 = q11 - r11[j]
         d2 = (t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3 + t4 * t4 + t5 * t5
               + t6 * t6 + t7 * t7 + t8 * t8 + t9 * t9 + t10 * t10 + t11 * t11)
-        # A loop-invariant branch, unswitched by LLVM as in _sum4.
-        s += beta[j] * (_g_acute(d2) if acute else _g(d2))
+        s += beta[j] * _g(d2)
     return s
 
 
@@ -164,9 +162,8 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step, 
         The coarse global fit sampled on a regular grid from ``f0_lo`` with spacing ``f0_step``;
         interpolated trilinearly where a corner patch has no fit.
     acute : bool
-        Every query and centre pair is at most 90 degrees apart (4-D ``[x : 1]`` with ``|x| < 1``, or
-        12-D vectors all within 45 degrees of one direction: ``NumbaEngine._acute``), so the faster
-        branch-free angle term of :func:`nkf_model.kernel._numba_kernels._g_acute` applies.
+        Every query and centre is a 4-D ``[x : 1]`` with ``|x| < 1`` (so the faster branch-free
+        angle term of :func:`nkf_model.kernel._numba_kernels._g_acute` applies).
     """
     nq = x.shape[0]
     d = qu.shape[1]
@@ -190,7 +187,7 @@ def pou_sum(x, qu, qr, lo, h, dims, start, count, cu, beta, f0, f0_lo, f0_step, 
                         acc = _sum4(qu[i, 0], qu[i, 1], qu[i, 2], qu[i, 3], cu[0], cu[1], cu[2], cu[3], beta,
                                     s0, s0 + m, acute)
                     elif d == 12:
-                        acc = _sum12(qu, i, cu, beta, s0, s0 + m, acute)
+                        acc = _sum12(qu, i, cu, beta, s0, s0 + m)
                     else:
                         for j in range(s0, s0 + m):
                             s = 0.0

@@ -32,6 +32,7 @@ import numpy as np
 from scipy.linalg import lapack
 from scipy.spatial import cKDTree
 
+from ..kernel._numba_kernels import ACUTE_MIN_LAST
 from ..kernel.engines import Engine, NumbaEngine
 from ..kernel.neural_spline import homogeneous, split_unit
 from ..points.farthest_point import farthest_point_sample
@@ -177,7 +178,8 @@ class PoUFunction:
         if cancel_poll is not None:
             cancel_poll()
         if isinstance(self.engine, NumbaEngine):
-            acute = self.engine._acute(qu, self.cu.T)  # 4-D [x : 1], or 12-D [x : phi : 1] in one cone
+            lim = ACUTE_MIN_LAST
+            acute = qu.shape[1] == 4 and bool(qu[:, 3].min() >= lim) and bool(self.cu[3].min() >= lim)
             with NumbaEngine._lock:
                 return pk.pou_sum(x, qu, qr, self.lo, self.h, self.dims, self.start, self.count, self.cu,
                                   self.beta, self.f0_grid, self.f0_lo, self.f0_step, acute)
