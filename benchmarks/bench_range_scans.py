@@ -10,7 +10,10 @@ grazing-angle noise, silhouette outliers, misregistered scans, no normals) and r
 Scores, in units of the reference's bounding-box diagonal: Chamfer-L1, normal consistency and
 F-score at 0.5 % between 100,000 area-weighted samples of the output and of the reference mesh;
 the number of connected pieces and the share of the area in the largest; the share of the output's
-area farther than 1 % of the diagonal from the reference ("off"); time in seconds.
+area farther than 1 % of the diagonal from the reference ("off"); time in seconds; and the same
+scores against only the part of the reference a scanner saw ("seen": reference samples within 0.5 %
+of a scanned surface point; output samples nearest an unseen one left out), which separates what the
+fit does with the data from how it closes what no scanner saw.
 
     python -m benchmarks.bench_range_scans --meshes quaternius__Sofa kenney__chairRounded
     python -m benchmarks.bench_range_scans --split val --every 4 --methods nkf splines poisson
@@ -35,7 +38,7 @@ from .range_scans import RangeScan, range_scan
 SAMPLES = 100_000
 FSCORE = 0.005  # of the diagonal
 OFF = 0.01  # of the diagonal
-DEFAULT_SCANS = {"views": 10, "pixels": 200, "noise": 0.0005, "misregistration": 0.001}
+DEFAULT_SCANS = {"views": 10, "pixels": 200, "noise": 0.0005, "misregistration": 0.001, "elevations": (15.0, 40.0)}
 
 
 def open3d_poisson(points: np.ndarray, depth: int = 9):
@@ -76,7 +79,8 @@ def pieces(v: np.ndarray, f: np.ndarray) -> tuple[int, float]:
     return int((per > 0).sum()), float(per.max() / per.sum())
 
 
-def score(v, f, ref_v, ref_f, diagonal: float, seed: int = 0, points: np.ndarray | None = None) -> dict:
+def score(v, f, ref_v, ref_f, diagonal: float, seed: int = 0, points: np.ndarray | None = None,
+          surface_points: np.ndarray | None = None) -> dict:
     """Chamfer-L1, normal consistency, F-score, pieces, largest share, off-surface share."""
     rng = np.random.default_rng(seed)
     if len(f) == 0:
@@ -91,7 +95,34 @@ def score(v, f, ref_v, ref_f, diagonal: float, seed: int = 0, points: np.ndarray
     if points is not None:
         d_in, _ = cKDTree(points).query(pp, workers=-1)
         out["near_input"] = float((d_in < 0.0025 * diagonal).mean())
+    if surface_points is not None:
+        out.update(seen_metrics(pp / diagonal, pn, rp / diagonal, rn, surface_points / diagonal))
     return out
+
+
+def seen_metrics(pp, pn, rp, rn, surface_points, tau: float = FSCORE) -> dict:
+    """The same scores against only the part of the reference a scanner saw.
+
+    A reference sample is *seen* when a scan's surface point (outliers excluded) lies within ``tau``
+    of it. Output samples whose nearest reference sample is unseen are left out (they close what no
+    scanner saw, right or wrong); the rest and the seen reference samples are scored as in
+    :func:`nkf_model.train.metrics.surface_metrics`. All inputs in units of the diagonal:
+    ``pp, pn`` (N, 3) output samples and normals, ``rp, rn`` (M, 3) reference ones, ``surface_points``
+    (K, 3)."""
+    d_seen, _ = cKDTree(surface_points).query(rp, workers=-1)
+    seen = d_seen < tau
+    d_pr, i_pr = cKDTree(rp).query(pp, workers=-1)
+    keep = seen[i_pr]
+    d_rp, i_rp = cKDTree(pp).query(rp[seen], workers=-1)
+    if not keep.any() or not seen.any():
+        return {"seen_share": float(seen.mean()), "seen_chamfer": float("nan"), "seen_nc": 0.0, "seen_fscore": 0.0}
+    nc_pr = np.abs(np.sum(pn[keep] * rn[i_pr[keep]], axis=1)).mean()
+    nc_rp = np.abs(np.sum(rn[seen] * pn[i_rp], axis=1)).mean()
+    precision = float((d_pr[keep] < tau).mean())
+    recall = float((d_rp < tau).mean())
+    f = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {"seen_share": float(seen.mean()), "seen_chamfer": 0.5 * float(d_pr[keep].mean() + d_rp.mean()),
+            "seen_nc": 0.5 * float(nc_pr + nc_rp), "seen_fscore": f}
 
 
 def scan_of(entry, scans: dict, seed: int) -> tuple[RangeScan, np.ndarray, np.ndarray]:
@@ -106,7 +137,7 @@ def run(entries, methods, resolution: int, scans: dict, seed: int = 0, log=print
         for method in methods:
             try:
                 v, f, dt = run_method(method, sc.points, resolution, **(settings or {}))
-                r = score(v, f, rv, rf, sc.diagonal, seed=seed)
+                r = score(v, f, rv, rf, sc.diagonal, seed=seed, surface_points=sc.points[~sc.outlier])
                 err = None
             except Exception as exc:  # a failure is a result
                 r, dt, err = {}, float("nan"), f"{type(exc).__name__}: {exc}"
@@ -121,24 +152,26 @@ def _fmt_row(r) -> str:
         return f"{r['mesh']:<34} {r['method']:<8} ERROR {r['error']}"
     return (f"{r['mesh']:<34} {r['method']:<8} n={r['points']:>7,} CD={r['chamfer']:.5f} NC={r['nc']:.4f} "
             f"F={r['fscore']:.4f} pieces={r['pieces']:>4} largest={r['largest']:.4f} off={r['off']:.4f} "
-            f"t={r['seconds']:.1f}s")
+            f"t={r['seconds']:.1f}s seen={r['seen_share']:.3f} seenCD={r['seen_chamfer']:.5f} "
+            f"seenNC={r['seen_nc']:.4f} seenF={r['seen_fscore']:.4f}")
 
 
 def table(rows, methods) -> str:
     lines = ["| method | meshes | mean Chamfer-L1 | mean normal consistency | mean F-score (0.5 %) | mean pieces | "
-             "min largest piece | mean off (> 1 %) | mean time (s) |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "min largest piece | mean off (> 1 %) | mean time (s) | seen share | seen Chamfer-L1 | seen NC | seen F |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for m in methods:
         rs = [r for r in rows if r["method"] == m and not r.get("error")]
         fails = sum(1 for r in rows if r["method"] == m and r.get("error"))
         if not rs:
-            lines.append(f"| {m} | 0 ({fails} failed) | | | | | | | |")
+            lines.append(f"| {m} | 0 ({fails} failed) | | | | | | | | | | | |")
             continue
         mean = lambda k, rs=rs: float(np.mean([r[k] for r in rs]))  # noqa: E731
         lines.append(
             f"| {m} | {len(rs)}{f' ({fails} failed)' if fails else ''} | {mean('chamfer'):.5f} | {mean('nc'):.4f} | "
             f"{mean('fscore'):.4f} | {mean('pieces'):.1f} | {min(r['largest'] for r in rs):.4f} | {mean('off'):.4f} | "
-            f"{mean('seconds'):.1f} |"
+            f"{mean('seconds'):.1f} | {mean('seen_share'):.3f} | {mean('seen_chamfer'):.5f} | {mean('seen_nc'):.4f} | "
+            f"{mean('seen_fscore'):.4f} |"
         )
     return "\n".join(lines)
 
@@ -154,6 +187,9 @@ def main(argv=None) -> int:
     ap.add_argument("--pixels", type=int, default=DEFAULT_SCANS["pixels"])
     ap.add_argument("--noise", type=float, default=DEFAULT_SCANS["noise"])
     ap.add_argument("--misregistration", type=float, default=DEFAULT_SCANS["misregistration"])
+    ap.add_argument("--elevations", type=float, nargs="+", default=list(DEFAULT_SCANS["elevations"]),
+                    help="scanner elevations in degrees, cycled over the views; a negative one looks from "
+                         "below (the object turned over and scanned again)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, help="append the table to this Markdown file")
     a = ap.parse_args(argv)
@@ -163,10 +199,11 @@ def main(argv=None) -> int:
         entries = [by[m] for m in a.meshes]
     else:
         entries = [e for e in rows_all if e.split == a.split][:: a.every]
-    scans = {"views": a.views, "pixels": a.pixels, "noise": a.noise, "misregistration": a.misregistration}
+    scans = {"views": a.views, "pixels": a.pixels, "noise": a.noise, "misregistration": a.misregistration,
+             "elevations": tuple(a.elevations)}
     rows = run(entries, a.methods, a.resolution, scans, seed=a.seed)
     text = (f"Simulated range scans: {a.views} views, {a.pixels} px, noise {a.noise} and misregistration up to "
-            f"{a.misregistration} of the diagonal, resolution {a.resolution}, {len(entries)} meshes\n\n"
+            f"{a.misregistration} of the diagonal, elevations {', '.join(f'{e:g}' for e in a.elevations)} degrees, resolution {a.resolution}, {len(entries)} meshes\n\n"
             + table(rows, a.methods))
     print(text)
     if a.out:

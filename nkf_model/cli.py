@@ -83,7 +83,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="do not carry the points' red green blue onto the mesh (carried when present)")
     s.add_argument("--keep-outliers", action="store_true",
                    help="keep points far sparser than the surface around them (removed by default from "
-                        "20,000 points up: scanner mixed pixels, stray returns)")
+                        "10,000 points up: scanner mixed pixels, stray returns)")
     reduce_to = SETTING["reduce_to"].default
     s.add_argument("--reduce-to", type=int, default=reduce_to, metavar="N",
                    help=f"reduce larger inputs to at most N points by voxel-grid averaging "

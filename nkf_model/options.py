@@ -223,7 +223,7 @@ SETTINGS: tuple[Setting, ...] = (
             "Cap the surface where it runs into the bounding box (plus 5 %), so that the mesh is closed"),
     Setting("outliers", "bool", True, "Remove Outliers",
             "Drop points far sparser than the surface around them (scanner mixed pixels, stray returns) "
-            "from inputs of 20,000 points or more"),
+            "from inputs of 10,000 points or more"),
     Setting("reduce_to", "int", 300_000, "Reduce To",
             "Reduce larger inputs to at most this many points by voxel-grid averaging; None never reduces",
             optional=True, low=1000),

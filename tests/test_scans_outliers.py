@@ -53,6 +53,15 @@ def test_floaters_below_min_area_are_removed_and_the_largest_always_stays():
     assert len(faces) == 4 and info.floaters_removed == 0
 
 
+def test_floaters_keep_pieces_above_their_share_of_the_area():
+    # The tiny square is 1e-4 of the whole area: a share limit below that keeps it, one above drops it.
+    v, f = _two_pieces()
+    faces, _, info = clean_scan_mesh(v, f, v.copy(), 0.01, min_area=0.01, max_share=5e-5)
+    assert len(faces) == 4 and info.floaters_removed == 0
+    faces, _, info = clean_scan_mesh(v, f, v.copy(), 0.01, min_area=0.01, max_share=5e-3)
+    assert len(faces) == 2 and info.floaters_removed == 1
+
+
 def test_reconstruct_drops_outliers_and_floaters_from_dense_scans():
     rng = np.random.default_rng(2)
     surface = _sphere(OUTLIER_MIN_POINTS + 5_000, rng)

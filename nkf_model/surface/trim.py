@@ -103,7 +103,7 @@ def compact(vertices: np.ndarray, faces: np.ndarray, keep_faces: np.ndarray):
 
 
 def clean_scan_mesh(vertices, faces, points, spacing: float, trim=None, min_piece: float = 0.0, floor: float = 0.0,
-                    min_area: float = 0.0):
+                    min_area: float = 0.0, max_share: float = 1.0):
     """Trim and filter a mesh; returns ``(faces (F', 3), kept vertex indices (V',), TrimInfo)``.
 
     Parameters
@@ -124,6 +124,8 @@ def clean_scan_mesh(vertices, faces, points, spacing: float, trim=None, min_piec
         points closer than that).
     min_area : float
         Also remove pieces with less than this area, in the mesh's units squared (0 keeps all).
+    max_share : float
+        ... but only those that also have less than this fraction of the total area (1: no limit).
     """
     info = TrimInfo()
     keep = np.ones(len(faces), dtype=bool)
@@ -143,7 +145,7 @@ def clean_scan_mesh(vertices, faces, points, spacing: float, trim=None, min_piec
         idx = np.flatnonzero(keep)
         count, label = piece_labels(len(vertices), faces[idx])
         area = np.bincount(label, weights=face_areas(vertices, faces[idx]), minlength=count)
-        small = area < min_area
+        small = (area < min_area) & (area < max_share * area.sum())
         if small.all():  # never remove every piece: keep the largest
             small[np.argmax(area)] = False
         info.floaters_removed = int(small.sum())
