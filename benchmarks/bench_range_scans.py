@@ -202,8 +202,10 @@ def main(argv=None) -> int:
     scans = {"views": a.views, "pixels": a.pixels, "noise": a.noise, "misregistration": a.misregistration,
              "elevations": tuple(a.elevations)}
     rows = run(entries, a.methods, a.resolution, scans, seed=a.seed)
+    elevations = ", ".join(f"{e:g}" for e in a.elevations)
     text = (f"Simulated range scans: {a.views} views, {a.pixels} px, noise {a.noise} and misregistration up to "
-            f"{a.misregistration} of the diagonal, elevations {', '.join(f'{e:g}' for e in a.elevations)} degrees, resolution {a.resolution}, {len(entries)} meshes\n\n"
+            f"{a.misregistration} of the diagonal, elevations {elevations} degrees, resolution {a.resolution}, "
+            f"{len(entries)} meshes\n\n"
             + table(rows, a.methods))
     print(text)
     if a.out:

@@ -99,6 +99,7 @@ def test_no_bundle_names_the_folder(addon, monkeypatch, tmp_path):
 def test_a_job_that_fails_to_import_reports_the_explanation(addon, monkeypatch, tmp_path):
     """The worker's failure path: the job's one line is the explanation, state failed."""
     import numpy as np
+
     from nkf_model.options import Options
 
     job_mod = ext("job")
@@ -115,6 +116,7 @@ def test_gpu_with_a_half_installed_pytorch_names_it_and_its_folder(addon, monkey
     """What a PyTorch install stopped halfway leaves: a ``torch`` folder whose import fails. Asked
     for the GPU, the job's one line says PyTorch cannot be imported, from where, and what to do."""
     import numpy as np
+
     from nkf_model.kernel import engines
     from nkf_model.options import Options
 
