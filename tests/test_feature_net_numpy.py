@@ -30,7 +30,10 @@ from nkf_model.kernel.feature_net_numpy import (
 )
 from nkf_model.kernel.weights import load_weights
 
-RTOL = 1e-6  # of the features' scale (max |value|)
+# Of the features' scale (max |value|): about 100 float32 steps. PyTorch's float32 rounding differs
+# between CPUs (a CI machine gave 1.08e-6 on the 3-level U-Net); each layer alone is held to 1e-10 in
+# float64 by test_layers_match_torch, so small slips of a layer (a GroupNorm eps) are caught there.
+RTOL = 1e-5
 
 
 def _constraints(n=2000, seed=0):

@@ -11,7 +11,7 @@
   trilinear upsampling with ``align_corners=False``, then the 1x1x1 head.
 
 Everything after the cell assignment runs in float64, so the result differs from PyTorch's float32
-network only by PyTorch's own rounding (``tests/test_feature_net_numpy.py`` holds it to 1e-6 of the
+network only by PyTorch's own rounding (``tests/test_feature_net_numpy.py`` holds it to 1e-5 of the
 features' scale). :func:`sample_grid_numpy` is the trilinear interpolation of the finished grid at
 arbitrary points (also used with PyTorch). No PyTorch, SciPy or numba import here.
 """
