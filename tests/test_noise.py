@@ -10,7 +10,8 @@ from nkf_model.fit.augment import augment, default_eps
 from nkf_model.fit.partition_of_unity import fit_pou
 from nkf_model.kernel.engines import cpu_engine
 from nkf_model.kernel.neural_spline import homogeneous
-from nkf_model.points.noise import NOISE_LAM_PER_VAR, estimate_noise, noise_lam
+from nkf_model.normals.estimate import median_spacing
+from nkf_model.points.noise import NOISE_LAM_PER_RATIO, estimate_noise, noise_lam
 
 
 def _sphere(n, noise, seed=0):
@@ -52,9 +53,16 @@ def test_opposite_sheets_do_not_read_as_noise():
 
 
 def test_noise_lam_never_lowers_lambda():
-    assert noise_lam(0.0, 1e-10) == 1e-10
-    assert noise_lam(0.005, 1e-10) == pytest.approx(NOISE_LAM_PER_VAR * 0.005**2)
-    assert noise_lam(0.005, 1.0) == 1.0
+    assert noise_lam(0.0, 0.01, 1e-10) == 1e-10
+    assert noise_lam(0.005, 0.01, 1e-10) == pytest.approx(NOISE_LAM_PER_RATIO * 0.25)
+    assert noise_lam(0.005, 0.01, 1.0) == 1.0
+    assert noise_lam(0.005, 0.0, 1e-10) == 1e-10  # no spacing (all points at one place): no floor
+
+
+def test_noise_lam_depends_on_noise_relative_to_spacing():
+    # The same cloud in other units, or the same noise at 4 times the density (half the spacing)
+    assert noise_lam(0.05, 0.1, 0.0) == pytest.approx(noise_lam(0.005, 0.01, 0.0))
+    assert noise_lam(0.005, 0.005, 0.0) == pytest.approx(4 * noise_lam(0.005, 0.01, 0.0))
 
 
 def test_larger_patch_lambda_smooths_a_noisy_sphere():
@@ -73,7 +81,7 @@ def test_larger_patch_lambda_smooths_a_noisy_sphere():
         first = np.argmax(vals > 0, axis=1)  # the zero crossing along each ray
         return float(np.sqrt(np.mean((radii[first] - 0.5) ** 2)))
 
-    assert radial_error(noise_lam(estimate_noise(p, n), 1e-10)) < 0.7 * radial_error(1e-10)
+    assert radial_error(noise_lam(estimate_noise(p, n), median_spacing(p), 1e-10)) < 0.7 * radial_error(1e-10)
 
 
 def test_reconstruct_reports_the_local_regularisation():

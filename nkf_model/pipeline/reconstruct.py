@@ -19,7 +19,7 @@ from ..kernel.engines import cpu_engine, select_engine
 from ..kernel.neural_spline import homogeneous
 from ..kernel.weights import load_weights
 from ..normals.estimate import DEFAULT_K as NORMAL_K
-from ..normals.estimate import check_orientation, check_viewpoints, estimate_normals
+from ..normals.estimate import check_orientation, check_viewpoints, estimate_normals, median_spacing
 from ..options import SETTING, Options
 from ..points.clean import clean_points
 from ..points.noise import estimate_noise, noise_lam
@@ -58,7 +58,8 @@ SOLVERS = SETTING["solver"].values
 # the fit wherever its sign agrees with the winding number (docs/benchmarks.md has the 52-mesh runs).
 __all__ = ["reconstruct", "fit", "Fit", "BLAS_THREADS", "FALKON_TOL", "FAR_START", "FAR_END"]
 # The learned kernel's local fits (above 3,000 points: denser than it was trained on) take the same
-# noise-aware regularisation, in proportion to its magnitude: lam = NKF_NOISE_LAM_FACTOR * r * 6 s^2,
+# noise-aware regularisation, in proportion to its magnitude: lam = NKF_NOISE_LAM_FACTOR * r * (the
+# data-free kernel's noise floor, nkf_model.points.noise.noise_lam; 6 s^2 when this was chosen),
 # with r the ratio of the mean Gram diagonals of the learned and the data-free kernel (about 4,700 for
 # the GPU-trained weights, whose learned constant feature is large). Chosen on 8 training-split meshes
 # at 10,000 points with noise 0.005 (factors 0 / 0.01 / 0.03 / 0.1 / 1: IoU 0.8143 / 0.8552 / 0.8645 /
@@ -112,8 +113,9 @@ def reconstruct(
     lam : float
         Regularisation per constraint, >= 0 (the paper's lambda; the solve uses
         ``(G + 2N lam I) alpha = y``). Larger values smooth the surface; 1e-12 to 1e-8 fit the points.
-        Above 3,000 points the local fits of the partition of unity use at least ``6 s^2`` for the
-        position noise ``s`` estimated from the input (unit box; :mod:`nkf_model.points.noise`), reported as
+        Above 3,000 points the local fits of the partition of unity use at least ``8e-4 (s / h)^2``
+        for the position noise ``s`` estimated from the input and its median point spacing ``h``
+        (:func:`nkf_model.points.noise.noise_lam`: the same for any units or density), reported as
         ``stats["pou"]["patch_lam"]`` (``method="nkf"``: scaled to the learned kernel's magnitude,
         see :data:`NKF_NOISE_LAM_FACTOR`).
     options : nkf_model.Options, optional
@@ -339,14 +341,17 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
         # by patch and was 5x slower (20,000 points: 9.2 s on an H100 against 1.8 s on its CPU).
         engine = cpu_engine()
     # Noisy input: the local solves of the partition of unity regularise in proportion to the
-    # estimated noise variance (nkf_model.points.noise) instead of interpolating the noise; clean input
+    # estimated noise variance over the squared point spacing (nkf_model.points.noise) instead of
+    # interpolating the noise; clean input
     # keeps ``lam``. The learned kernel's, scaled to its magnitude (NKF_NOISE_LAM_FACTOR).
     # A function of lambda, so that a kept fit (nkf_model.pipeline.fitted.Fit.with_lam) re-solves as a
     # fresh run would.
     ratio = None
+    spacing = None
     if kind == "pou":
         if sigma is None:
             sigma = estimate_noise(x, nrm)
+        spacing = median_spacing(x)
         if model is not None:
             ratio = float(np.mean(np.einsum("ij,ij->i", a, a)) / np.mean(np.einsum("ij,ij->i", xa, xa) + 1.0))
 
@@ -354,8 +359,8 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
         if kind != "pou":
             return None
         if model is None:
-            return noise_lam(sigma, value)
-        return max(float(value), NKF_NOISE_LAM_FACTOR * ratio * noise_lam(sigma, 0.0))
+            return noise_lam(sigma, spacing, value)
+        return max(float(value), NKF_NOISE_LAM_FACTOR * ratio * noise_lam(sigma, spacing, 0.0))
 
     # Away from the data the field follows the input's winding number, which assumes a closed
     # surface. Open scans (``trim`` set) keep the fit's own sign there: on the scene benchmark the far
