@@ -1,6 +1,7 @@
 """Hoppe's tangent-plane sign propagation (nkf_model.normals.consistent)."""
 
 import numpy as np
+import pytest
 
 from nkf_model.normals.consistent import consistent_signs
 
@@ -72,3 +73,27 @@ def test_the_check_leaves_small_clouds_alone():
     wrong = sign.copy()
     wrong[p[:, 2] < -0.8] *= -1
     assert consistent.tangent_plane_check(state, wrong) == (wrong, 0)
+
+
+def test_the_check_leaves_thin_branches_alone():
+    # 10,000 points of a rifle (thin barrel, sling, sights): the propagation runs along the thin parts
+    # and flips 18 % of the points for a gain in agreement of only 1.4 %; the old rule (gain above
+    # 0.1 %, at most 20 % flipped) took it and left 19 % of the signs wrong instead of 6 %. A right
+    # correction gains at least 0.2 per share flipped (consistent.GAIN_PER_FLIP).
+    from scipy.spatial import cKDTree
+
+    from nkf_model.normals.estimate import estimate_normals
+    from nkf_model.points.normalise import Normalisation
+    from nkf_model.train import corpus, metrics
+
+    if not (corpus.corpus_dir() / "MANIFEST.csv").is_file():
+        pytest.skip("the mesh corpus (../shared/data/meshes) is not beside this checkout")
+    v, f = corpus.load({e.name: e for e in corpus.manifest()}["quaternius__Sniper_rifle"])
+    p, _ = metrics.sample_surface(v, f, 10_000, np.random.default_rng(0))
+    x = Normalisation.fit(p).to_unit(p)
+    nrm, info = estimate_normals(x, orientation="outward")
+    rp, rn = metrics.sample_surface(v, f, 200_000, np.random.default_rng(1))
+    _, i = cKDTree(rp).query(p)
+    wrong = float(np.mean(np.einsum("ij,ij->i", nrm, rn[i]) < 0))
+    assert info.consistent_flips == 0
+    assert wrong < 0.1, wrong
