@@ -63,6 +63,11 @@ GAIN_PER_FLIP = 0.2
 # The per-flip gain falls as a compact wrong face grows (its border grows more slowly than its area):
 # a wrong cap of 10 % of a 12,000-point sphere gains 0.16 per share, and removes all the disagreement.
 CLEAN_SHARE = 0.9
+# Corrections of at most this share of the points need only the gain above :data:`ENERGY_GAIN`: every
+# wrong one measured flipped 16 % or more (or gained less than that), and among small right ones the
+# gain per share is noisy (quaternius__Manta_ray's turntable scan: 0.7 % flipped, 0.19 per share,
+# 0.76 -> 0.15 % wrong).
+SMALL_FLIPS = 0.05
 # ... and when they flip at most this share of the points. Where the propagation crossed a wall thinner
 # than the spacing (a thin-walled cup: 35 % at a wall of 0.4 of the spacing, 43 to 48 % at thicker walls,
 # with large gains: the edge relations cannot see such a wall either) or ran around thin sharp parts
@@ -188,6 +193,6 @@ def tangent_plane_check(state, sign: np.ndarray, cancel_poll=None) -> tuple[np.n
         return sign, 0
     best = -float(abs(a).sum())  # every relation agreed with
     cleaned = (before - after) / (before - best) if before > best else 0.0
-    if gain >= GAIN_PER_FLIP * flips / n or cleaned >= CLEAN_SHARE:
+    if flips <= SMALL_FLIPS * n or gain >= GAIN_PER_FLIP * flips / n or cleaned >= CLEAN_SHARE:
         return candidate, flips
     return sign, 0
