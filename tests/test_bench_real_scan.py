@@ -30,3 +30,22 @@ def test_a_second_sheet_and_a_floater_are_seen():
     assert r["pieces"] == 3 and 0.5 < r["largest"] < 0.6  # the outer wall: 1 / (1 + 0.81 + 0.01)
     assert 0.4 < r["far"] < 0.5  # the inner wall and the floater
     assert r["in_p50"] < 0.5  # the input still lies on the outer wall
+
+
+def test_point_triangle_distance_is_the_closest_point_of_the_triangle():
+    from benchmarks.bench_real_scan import point_triangle_distance
+
+    rng = np.random.default_rng(3)
+    a, b, c = (rng.normal(size=(300, 3)) for _ in range(3))
+    p = 2 * rng.normal(size=(300, 3))
+    # brute force: the nearest of a fine barycentric lattice on each triangle
+    t = np.linspace(0, 1, 201)
+    u, w = np.meshgrid(t, t)
+    inside = u + w <= 1
+    u, w = u[inside], w[inside]
+    grid = a[:, None] + u[None, :, None] * (b - a)[:, None] + w[None, :, None] * (c - a)[:, None]
+    brute = np.linalg.norm(grid - p[:, None], axis=2).min(axis=1)
+    got = point_triangle_distance(p, a, b, c)
+    assert np.all(got <= brute + 1e-12)
+    edge = np.max([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - a, axis=1)], axis=0)
+    assert np.all(brute - got <= edge / 200 + 1e-12)  # within the lattice's step
