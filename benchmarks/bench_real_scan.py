@@ -14,7 +14,7 @@ Each method reconstructs the raw points (no normals) and is judged by what needs
 Methods: ``nkf`` and ``splines`` (:func:`nkf_model.reconstruct` with its defaults), ``poisson``
 (Open3D's screened Poisson, depth 9, on Open3D's own normals, as in :mod:`benchmarks.bench_range_scans`).
 
-    python -m benchmarks.bench_real_scan --methods splines poisson --render docs/dragon_scan.png
+    python -m benchmarks.bench_real_scan --methods splines poisson --render docs/dragon_real_scan.png
 
 ``--units-per-mm`` converts the file's units (the dragon is in metres: 1000). Open3D: ``pip install
 -e '.[bench]'``.
@@ -30,11 +30,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from nkf_model.io.files import read_point_cloud
-from nkf_model.train import metrics
+from nkf_model.train import corpus, metrics
 
 from .bench_range_scans import pieces, run_method
 
-DRAGON = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "scans" / "dragon_stand_scans.ply"
+DRAGON = corpus.corpus_dir().parent / "scans" / "dragon_stand_scans.ply"  # beside the mesh corpus
 SAMPLES = 200_000
 NEAR_MM, FAR_MM = 0.5, 1.5
 

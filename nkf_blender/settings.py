@@ -170,8 +170,7 @@ PROPERTY_NAMES = (
 LAMBDA_TOOLTIP = (
     SETTING["lam"].description + ". Typed and shown like 1e-10; each step of the log slider is a factor of 10. "
     "Above 3,000 points the local fits use at least 8e-4 (s/h)^2 for the noise s estimated from the points and "
-    "their spacing h (a floor "
-    "that ignores smaller values)"
+    "their spacing h (a floor that ignores smaller values)"
 )
 LOG_LAMBDA_MIN, LOG_LAMBDA_MAX = -16.0, math.log10(SETTING["lam"].soft_high)
 

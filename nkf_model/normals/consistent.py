@@ -52,7 +52,7 @@ ENERGY_GAIN = 0.001
 # ... and either by at least this much per share of the points flipped (a gain of 0.2 % for 1 % flipped),
 # or by removing at least :data:`CLEAN_SHARE` of all disagreement with the relations. A right correction
 # flips whole faces and makes their edges to the rest agree; a wrong one runs along thin branches or a
-# thin rim, and gains little for what it flips while leaving much disagreement behind. Measured on 60
+# thin rim, and gains little for what it flips while leaving much disagreement behind. Measured on 61
 # simulated scans and area samples of `val` meshes (2026-12-05, docs/real_scans.md): the corrections
 # that made the signs right gained 0.22 to 2.5 per share flipped (quaternius__Sofa's turntable scan 0.30,
 # kenney__televisionModern's all-round scan 0.22), the ones that made them worse at most 0.16

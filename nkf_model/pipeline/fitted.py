@@ -29,7 +29,6 @@ from ..fit.partition_of_unity import PoURefit, fit_pou, patch_spacing
 from ..fit.refit import GramEigen
 from ..fit.solve import KernelFunction, SolveInfo, solve_dense, solve_falkon
 from ..kernel.neural_spline import homogeneous, split_unit
-from ..normals.estimate import median_spacing
 from ..options import Options
 from ..points.farthest_point import farthest_point_sample
 from ..points.normalise import GRID_HALF, Normalisation
@@ -69,6 +68,8 @@ class Prepared:
         Colours of ``x``.
     norm : Normalisation
         Unit box <-> input frame (``x * scale + center``, input units).
+    spacing : float
+        Median nearest-neighbour distance of ``x`` (:func:`~nkf_model.normals.estimate.median_spacing`).
     a : (2n, D) float64, y : (2n,) float64
         Homogeneous constraints and their labels.
     phi : callable or None
@@ -94,6 +95,7 @@ class Prepared:
     normals: np.ndarray
     rgb: np.ndarray | None
     norm: Normalisation
+    spacing: float
     a: np.ndarray
     y: np.ndarray
     phi: Any
@@ -438,7 +440,7 @@ class Fit:
         floaters = removes_floaters(opts, len(x))
         if trim is not None or min_piece > 0 or floaters:
             track.begin("clean")
-            spacing = median_spacing(x)
+            spacing = p.spacing
             min_area = FLOATER_AREA * spacing**2 if floaters else 0.0
             faces, kept, trim_info = clean_scan_mesh(
                 unit_v, faces, x, spacing, trim=trim, min_piece=min_piece, floor=2.0 * GRID_HALF / resolution,

@@ -11,6 +11,7 @@ import warnings
 from collections.abc import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from ..errors import InputWarning, MissingNormalsError
@@ -318,6 +319,9 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
         nrm, normal_info = estimate_normals(x, orientation=orient, viewpoints=unit_vp, cancel_poll=track.cancel_poll)
 
     track.begin("augment")
+    # One tree and one spacing per fit: the noise estimate and floor, and every mesh's clean step.
+    tree = cKDTree(x)
+    spacing = median_spacing(x, tree)
     eps_used = float(opts.eps) if opts.eps is not None else default_eps(n)
     xa, y = augment(x, nrm, eps_used)
     phi = None
@@ -329,7 +333,7 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
         track.begin("features")
         feature_scale = 1.0
         if n > NKF_TRAINED_POINTS:
-            sigma = estimate_noise(x, nrm)
+            sigma = estimate_noise(x, nrm, tree=tree)
             feature_scale = min(1.0, sigma / NKF_FEATURE_NOISE)
             if feature_scale < NKF_FEATURE_OFF:
                 feature_scale = 0.0
@@ -342,16 +346,14 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
         engine = cpu_engine()
     # Noisy input: the local solves of the partition of unity regularise in proportion to the
     # estimated noise variance over the squared point spacing (nkf_model.points.noise) instead of
-    # interpolating the noise; clean input
-    # keeps ``lam``. The learned kernel's, scaled to its magnitude (NKF_NOISE_LAM_FACTOR).
+    # interpolating the noise; clean input keeps ``lam``. The learned kernel's, scaled to its
+    # magnitude (NKF_NOISE_LAM_FACTOR).
     # A function of lambda, so that a kept fit (nkf_model.pipeline.fitted.Fit.with_lam) re-solves as a
     # fresh run would.
     ratio = None
-    spacing = None
     if kind == "pou":
         if sigma is None:
-            sigma = estimate_noise(x, nrm)
-        spacing = median_spacing(x)
+            sigma = estimate_noise(x, nrm, tree=tree)
         if model is not None:
             ratio = float(np.mean(np.einsum("ij,ij->i", a, a)) / np.mean(np.einsum("ij,ij->i", xa, xa) + 1.0))
 
@@ -388,7 +390,7 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
         "feature_scale": feature_scale,
     }
     prep = Prepared(
-        options=opts, x=x, normals=nrm, rgb=rgb, norm=norm, a=a, y=y, phi=phi,
+        options=opts, x=x, normals=nrm, rgb=rgb, norm=norm, spacing=spacing, a=a, y=y, phi=phi,
         coarse_a=None if phi is None else homogeneous(xa), kind=kind, engine=engine, patch_lam=patch_lam,
         far_field=far_field, info=info, n_in=n_in, estimate_normals=estimate_n,
     )
