@@ -74,6 +74,7 @@ def reconstruct_object(
     trim: float | None = None,
     min_piece: float = 0.0,
     close: bool = False,
+    balloon_check: bool = True,
     colors: bool = True,
     memory_budget_gb: float | None = None,
     new_object: bool = False,
@@ -115,6 +116,9 @@ def reconstruct_object(
         ``nkf_model.options.SCAN_MIN_PIECE`` = 0.002); 0 keeps all.
     close : bool
         Cap the surface where it runs into the bounding box (plus 5 %): a watertight mesh.
+    balloon_check : bool
+        ``method="nkf"``, up to 3,000 points: fit the data-free kernel too where the learned surface
+        bulges far beyond the points, and use it if it stays nearer (``Mesh.stats["balloon_check"]``).
     colors : bool
         Carry the object's POINT colour attribute (e.g. ``Col``) onto the mesh as ``Col``.
     memory_budget_gb : float, optional
@@ -157,6 +161,7 @@ def reconstruct_object(
         trim=None if trim is None else _as(float, trim),
         min_piece=_as(float, min_piece),
         close=bool(close),
+        balloon_check=bool(balloon_check),
         memory_budget=(
             int(float(memory_budget_gb) * prefs.GIB) if memory_budget_gb is not None else prefs.memory_budget(context)
         ),

@@ -104,9 +104,11 @@ def _result_box(layout, obj, s) -> None:
     else:
         box.label(text=f"Result of '{src.name}'", icon="LINKED")
     trim = obj.get("nkf_trim", -1.0)
+    method = obj.get("nkf_method", "?")
+    used = obj.get("nkf_used", method)  # "splines" when the learned kernel's balloon check fell back
     lines = [
-        f"{obj.get('nkf_method', '?')}, Lambda {settings.format_lambda(obj.get('nkf_lambda', 0.0))}, "
-        f"Resolution {obj.get('nkf_resolution', 0)}",
+        f"{method}{f' (used {used}: balloon check)' if used != method else ''}, "
+        f"Lambda {settings.format_lambda(obj.get('nkf_lambda', 0.0))}, Resolution {obj.get('nkf_resolution', 0)}",
         f"{obj.get('nkf_points', 0):,} points, normals {obj.get('nkf_normals', '?')}, "
         + ("closed" if trim is None or trim < 0 else f"trim {trim:g}, min piece {obj.get('nkf_min_piece', 0):g}")
         + (", watertight" if obj.get("nkf_close") else ""),
@@ -187,6 +189,9 @@ def draw_panel(layout, context) -> None:
         elif ok and methods.DEFAULT_METHOD != "nkf":
             wrapped(col, "Not the default: on shapes unlike its training data the learned kernel has not "
                     "yet beaten Neural Splines by the gate's margin (docs/nkf.md)", icon="INFO", width=WRAP)
+    sub = col.column()
+    sub.enabled = s.method == "NKF"  # the learned kernel's safeguard (nkf_model.fit.balloon_check)
+    sub.prop(s, "use_balloon_check")
     col.prop(s, "lambda_text", text="Lambda")
     col.prop(s, "lambda_log", text="log10 Lambda", slider=True)
     col.prop(s, "resolution")

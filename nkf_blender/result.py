@@ -114,7 +114,7 @@ SOURCE_REF = "nkf_source_ref"  # the source object itself (an ID property: follo
 STAMP_KEYS = (
     "nkf_source", "nkf_method", "nkf_lambda", "nkf_resolution", "nkf_normals", "nkf_orientation", "nkf_trim",
     "nkf_min_piece", "nkf_close", "nkf_colors", "nkf_max_points", "nkf_device", "nkf_weights", "nkf_points",
-    "nkf_seconds", "nkf_solver",
+    "nkf_seconds", "nkf_solver", "nkf_used",
 )
 
 
@@ -182,6 +182,8 @@ def stamp(ob, source, source_name: str, options, stats: dict, seconds: float, *,
     ob["nkf_points"] = int(points_used)
     ob["nkf_seconds"] = round(float(seconds), 3)
     ob["nkf_solver"] = str(stats.get("solver", ""))
+    # The kernel the mesh came from: "splines" when the learned kernel's balloon check fell back.
+    ob["nkf_used"] = str((stats.get("balloon_check") or {}).get("used", options.method))
     ob["nkf_time"] = time.time()
 
 

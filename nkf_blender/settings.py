@@ -141,6 +141,10 @@ def annotations(default_method: str, update=None) -> dict:
         "use_outliers": BoolProperty(
             name=SETTING["outliers"].label, default=SETTING["outliers"].default, description=description("outliers"),
         ),
+        "use_balloon_check": BoolProperty(
+            name=SETTING["balloon_check"].label, default=SETTING["balloon_check"].default,
+            description=description("balloon_check"),
+        ),
         "use_colors": BoolProperty(
             name="Colours", default=True,
             description="Carry the points' colour attribute (e.g. 'Col' from a PLY) onto the mesh",
@@ -165,7 +169,7 @@ def annotations(default_method: str, update=None) -> dict:
 PROPERTY_NAMES = (
     "method", "regularization", "resolution", "max_points", "device",
     "normals_mode", "orientation", "use_scan", "trim", "min_piece", "use_close", "use_outliers", "use_colors",
-    "use_new_object", "use_evaluated",
+    "use_new_object", "use_evaluated", "use_balloon_check",
 )
 LAMBDA_TOOLTIP = (
     SETTING["lam"].description + ". Typed and shown like 1e-10; each step of the log slider is a factor of 10. "
@@ -263,6 +267,7 @@ def to_options(props, memory_budget: int | None = None) -> Options:
         min_piece=float(props.min_piece) if scan else 0.0,
         close=bool(props.use_close),
         outliers=bool(props.use_outliers),
+        balloon_check=bool(props.use_balloon_check),
         memory_budget=memory_budget,
     )
 

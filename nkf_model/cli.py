@@ -84,6 +84,9 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--keep-outliers", action="store_true",
                    help="keep points far sparser than the surface around them (removed by default from "
                         "10,000 points up: scanner mixed pixels, stray returns)")
+    s.add_argument("--no-balloon-check", action="store_true",
+                   help="--method nkf: keep the learned surface even where it bulges far beyond sparse points "
+                        "(checked by default up to 3,000 points, falling back to the data-free kernel)")
     reduce_to = SETTING["reduce_to"].default
     s.add_argument("--reduce-to", type=int, default=reduce_to, metavar="N",
                    help=f"reduce larger inputs to at most N points by voxel-grid averaging "
@@ -148,7 +151,7 @@ def options_from_args(args) -> Options:
         max_points=args.max_points, seed=args.seed, normals_mode=args.normals, orientation=args.orient,
         trim=args.trim if args.trim is not None else (SCAN_TRIM if args.scan else None),
         min_piece=args.min_piece if args.min_piece is not None else (SCAN_MIN_PIECE if args.scan else 0.0),
-        close=args.close, outliers=not args.keep_outliers,
+        close=args.close, outliers=not args.keep_outliers, balloon_check=not args.no_balloon_check,
         reduce_to=None if args.reduce_to == 0 else args.reduce_to, solver=args.solver,
         memory_budget=None if args.memory_budget is None else args.memory_budget * 2**30, weights=args.weights,
     )

@@ -224,6 +224,9 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("outliers", "bool", True, "Remove Outliers",
             "Drop points far sparser than the surface around them (scanner mixed pixels, stray returns) "
             "from inputs of 10,000 points or more"),
+    Setting("balloon_check", "bool", True, "Check Learned Surface",
+            "Learned kernel, up to 3,000 points: when its surface bulges far beyond the points (0.2 of their "
+            "diagonal or more), fit the data-free kernel too and use it if it stays nearer"),
     Setting("reduce_to", "int", 300_000, "Reduce To",
             "Reduce larger inputs to at most this many points by voxel-grid averaging; None never reduces",
             optional=True, low=1000),
@@ -304,6 +307,7 @@ class Options:
     min_piece: float = SETTING["min_piece"].default
     close: bool = SETTING["close"].default
     outliers: bool = SETTING["outliers"].default
+    balloon_check: bool = SETTING["balloon_check"].default
     reduce_to: int | None = SETTING["reduce_to"].default
     solver: str = SETTING["solver"].default
     max_centres: int = SETTING["max_centres"].default

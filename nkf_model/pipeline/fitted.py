@@ -18,13 +18,15 @@ from __future__ import annotations
 import copy
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ..errors import InvalidParameterError, NoSurfaceError
+from ..errors import InputWarning, InvalidParameterError, NoSurfaceError
+from ..fit.balloon_check import BalloonCheck, CheckNodes, needs_data_free, prefer_data_free
 from ..fit.partition_of_unity import PoURefit, fit_pou, patch_spacing
 from ..fit.refit import GramEigen
 from ..fit.solve import KernelFunction, SolveInfo, solve_dense, solve_falkon
@@ -127,6 +129,8 @@ class _Shared:
         self.blend_k: np.ndarray | None = None
         # The learned features at the grid nodes already evaluated (QueryCache), for every lambda.
         self.queries: QueryCache | None = QueryCache(QUERY_CACHE_BYTES) if keep and QUERY_CACHE_BYTES > 0 else None
+        # The balloon check's lattice nodes (nkf_model.fit.balloon_check), the same for every lambda.
+        self.check_nodes: CheckNodes | None = None
         self.lock = threading.Lock()
 
 
@@ -218,6 +222,7 @@ class Fit:
         sol = self._sol
         pou = None if sol.pou_info is None else dict(sol.pou_info.__dict__)
         return {**self._prep.info, "lam": self.lam, "solver": sol.info.method, "centres": sol.info.centres,
+                "balloon_check": None if sol.check is None else dict(sol.check.__dict__),
                 "cg_iterations": sol.info.iterations, "pou": pou, "timings": dict(self.timings)}
 
     def mesh(self, resolution: int | None = None, *, close: bool | None = None, trim=_KEEP,
@@ -347,7 +352,39 @@ class Fit:
             n_centres = 16 * pou_info.median_points  # kernel sums per evaluated grid point, typically
         if p.kind != "pou" and p.far_field:
             fn = self._blend(fn, eng, track)
-        return _Solution(fn=fn, info=info, pou_info=pou_info, n_centres=n_centres, engine=eng)
+        check = None
+        if p.kind == "dense" and p.phi is not None and p.options.balloon_check:
+            fn, check = self._balloon_check(fn, eng, track)
+        return _Solution(fn=fn, info=info, pou_info=pou_info, n_centres=n_centres, engine=eng, check=check)
+
+    def _balloon_check(self, fn, eng, track: Tracker):
+        """The learned function, or the data-free one fitted to the same points where the learned
+        surface balloons beyond them (:mod:`nkf_model.fit.balloon_check`); and what was found."""
+        p, s = self._prep, self._shared
+        if s.check_nodes is None:
+            s.check_nodes = CheckNodes.around(p.x, GRID_HALF)
+        nodes = s.check_nodes
+        if not len(nodes.points):
+            return fn, BalloonCheck(0.0, None, "nkf")
+        reach = nodes.reach_of(fn(nodes.points, cancel_poll=track.cancel_poll))
+        if not needs_data_free(reach):
+            return fn, BalloonCheck(reach, None, "nkf")
+        n = len(p.x)
+        y0 = np.concatenate([np.ones(n), -np.ones(n)])  # the labels before the learned kernel's weights
+        alpha0, _ = solve_dense(p.coarse_a, y0, self.lam, eng, cancel_poll=track.cancel_poll)
+        free = KernelFunction(p.coarse_a, alpha0, eng)
+        if isinstance(fn, BlendedField):  # the same far field, its scale fitted to the data-free values
+            q = self._calibration_q(track.cancel_poll)
+            blended = copy.copy(fn)
+            blended.fn = free
+            blended.scale = winding_scale(s.blend_w, free(q, cancel_poll=track.cancel_poll)) if len(q) else 1.0
+            free = blended
+        free_reach = nodes.reach_of(free(nodes.points, cancel_poll=track.cancel_poll))
+        if prefer_data_free(reach, free_reach):
+            check = BalloonCheck(reach, free_reach, "splines")
+            warnings.warn(check.message(), InputWarning, stacklevel=2)
+            return free, check
+        return fn, BalloonCheck(reach, free_reach, "nkf")
 
     def _blend(self, fn, eng, track: Tracker):
         """``BlendedField(fn, ...)`` as a fresh run makes it, reusing the KD-tree and winding
@@ -400,8 +437,8 @@ class Fit:
             return None
         blend = fn if isinstance(fn, BlendedField) else None
         inner = fn.fn if blend is not None else fn
-        if not (hasattr(inner, "query") and hasattr(inner, "at")):
-            return None
+        if not (hasattr(inner, "query") and hasattr(inner, "at")) or getattr(inner, "features", None) is None:
+            return None  # (the data-free function of a fit whose balloon check fell back has no features)
         cache = s.queries
 
         def node_f(pts, keys, level):
@@ -467,7 +504,7 @@ class Fit:
             "points_in": info["points_in"],
             "points_used": info["points_used"],
             "dropped": dict(info["dropped"]),
-            "warnings": list(info["warnings"]),
+            "warnings": list(info["warnings"]) + ([sol.check.message()] if sol.check and sol.check.fell_back else []),
             "eps": info["eps"],
             "lam": self.lam,
             "solver": sol.info.method,
@@ -486,6 +523,7 @@ class Fit:
             "orientation": info["orientation"],
             "pou": None if sol.pou_info is None else dict(sol.pou_info.__dict__),
             "feature_scale": info["feature_scale"],
+            "balloon_check": None if sol.check is None else dict(sol.check.__dict__),
             "far_field": p.far_field,
             "close": close,
             "trim": None if trim_info is None else dict(trim_info.__dict__),
@@ -512,6 +550,7 @@ class _Solution:
     pou_info: Any
     n_centres: int
     engine: Any
+    check: BalloonCheck | None = None
 
 
 def removes_floaters(opts: Options, n_points: int) -> bool:

@@ -257,6 +257,16 @@ def test_panel_shows_the_result_with_rerun_and_live(sphere, bpy_module):
     assert {"live", "lambda_text", "lambda_log", "use_evaluated", "use_new_object"} <= set(layout.props())
     assert [i.text for i in layout.items if i.kind == "menu"] == ["NKF Presets"]
     assert "regularization" not in layout.props()
+    assert "splines, Lambda" in text and "balloon check" not in text
+    # A learned-kernel result whose balloon check fell back says which kernel made its mesh.
+    nkf_opts = ext("settings").to_options(bpy.context.scene.nkf_settings).replace(method="nkf")
+    check = {"learned_reach": 0.33, "data_free_reach": 0.0, "used": "splines"}
+    ext("result").stamp(res, sphere, "sphere", nkf_opts, {"balloon_check": check, "solver": "dense"}, 1.0,
+                        points_used=N, colors=False)
+    assert res["nkf_used"] == "splines" and res["nkf_method"] == "nkf"
+    layout = RecordingLayout()
+    ext("panel").draw_panel(layout, bpy.context)
+    assert "nkf (used splines: balloon check), Lambda" in layout.joined()
     bpy.data.objects.remove(sphere)
     bpy.context.view_layer.update()
     bpy.context.view_layer.objects.active = res

@@ -22,13 +22,14 @@ STORED_ENUMS = {
 PROPERTY_NAMES = (
     "method", "regularization", "resolution", "max_points", "device",
     "normals_mode", "orientation", "use_scan", "trim", "min_piece", "use_close", "use_outliers", "use_colors",
-    "use_new_object", "use_evaluated",
+    "use_new_object", "use_evaluated", "use_balloon_check",
 )
 # Blender property -> the core's setting it reads its texts and ranges from.
 CORE = {
     "method": "method", "regularization": "lam", "resolution": "resolution", "max_points": "max_points",
     "device": "device", "normals_mode": "normals_mode", "orientation": "orientation", "trim": "trim",
     "min_piece": "min_piece", "use_close": "close", "use_outliers": "outliers",
+    "use_balloon_check": "balloon_check",
 }
 
 
@@ -79,6 +80,7 @@ def test_labels_tooltips_ranges_and_defaults_come_from_the_core(addon, bpy_modul
         assert props["device"].default == "AUTO" and props["normals_mode"].default == "AUTO"
         assert props["use_close"].default is SETTING["close"].default
         assert props["use_outliers"].default is SETTING["outliers"].default
+        assert props["use_balloon_check"].default is SETTING["balloon_check"].default
         # Blender's own defaults, documented in nkf_blender.settings.
         assert props["max_points"].default == 100_000 and props["max_points"].hard_min == 0
         assert props["orientation"].default == "OUTWARD"
@@ -96,12 +98,14 @@ def test_properties_map_to_one_options(scene, bpy_module):
     s.method, s.regularization, s.resolution, s.max_points = "SPLINES", 1e-8, 77, 0
     s.device, s.normals_mode, s.orientation = "GPU", "ESTIMATE", "VIEWPOINT"
     s.use_scan, s.trim, s.min_piece, s.use_close, s.use_outliers = True, 2.5, 0.01, True, False
+    s.use_balloon_check = False
     opts = settings.to_options(s, memory_budget=2**30)
     # Float properties hold float32: compare those with a tolerance, then everything exactly.
     assert (opts.lam, opts.trim, opts.min_piece) == pytest.approx((1e-8, 2.5, 0.01), rel=1e-6)
     assert opts.replace(lam=1e-8, trim=2.5, min_piece=0.01) == Options(
         method="splines", lam=1e-8, resolution=77, max_points=None, device="cuda", normals_mode="estimate",
-        orientation="viewpoint", trim=2.5, min_piece=0.01, close=True, outliers=False, memory_budget=2**30,
+        orientation="viewpoint", trim=2.5, min_piece=0.01, close=True, outliers=False, balloon_check=False,
+        memory_budget=2**30,
     )
     s.max_points = 250
     assert settings.to_options(s).max_points == 250
