@@ -40,9 +40,10 @@ def test_the_check_takes_back_a_face_seeded_from_the_inside():
     wrong = sign.copy()
     cap = p[:, 2] < -0.8  # about 10 % of the sphere
     wrong[cap] *= -1
-    fixed, flips = tangent_plane_check(state, wrong)
-    assert flips >= cap.sum() * 0.95
-    assert np.mean(np.einsum("ij,ij->i", state.normals * fixed[:, None], p) > 0) > 0.99
+    for closed in (False, True):  # the winding number agrees (a closed object)
+        fixed, flips = tangent_plane_check(state, wrong, closed=closed)
+        assert flips >= cap.sum() * 0.95
+        assert np.mean(np.einsum("ij,ij->i", state.normals * fixed[:, None], p) > 0) > 0.99
 
 
 def test_the_check_leaves_thin_walls_alone(monkeypatch):
@@ -97,3 +98,35 @@ def test_the_check_leaves_thin_branches_alone():
     wrong = float(np.mean(np.einsum("ij,ij->i", nrm, rn[i]) < 0))
     assert info.consistent_flips == 0
     assert wrong < 0.1, wrong
+
+
+def _corpus_samples(name, n):
+    from nkf_model.train import corpus
+
+    if not (corpus.corpus_dir() / "MANIFEST.csv").is_file():
+        pytest.skip("the mesh corpus (../shared/data/meshes) is not beside this checkout")
+    e = {e.name: e for e in corpus.manifest()}[name]
+    v, f = corpus.load(e)
+    return corpus.sample_input(v, f, n, 0.0, corpus.stable_seed("input", e.name, n, 0.0))
+
+
+def test_the_check_asks_the_rest_of_a_closed_object():
+    # 10,000 points of quaternius__Windmill (thin blades and struts), as the normal-estimation
+    # benchmark samples them: the propagation flips 29 % of the points and passes the relation tests
+    # (gain 6 %, 0.21 per share flipped), but it runs along the thin parts and leaves 33 % of the
+    # signs wrong instead of 11 %. The winding number of the points it does not flip backs their old
+    # signs at 35 % of them (consistent.REST_SUPPORT: at most 20 %), so the orientation's signs stay.
+    from nkf_model.normals import consistent, sign_check
+
+    p, n = _corpus_samples("quaternius__Windmill", 10_000)
+    _, state = _state(p)
+    sign, _ = sign_check.flip_wrong(state)  # as estimate_normals: the learned check comes first
+    kept, flips = consistent.tangent_plane_check(state, sign, closed=True)
+    assert flips == 0 and np.array_equal(kept, sign)
+    open_, flips_open = consistent.tangent_plane_check(state, sign, closed=False)
+    assert flips_open > 0.2 * len(p)  # what the relation tests alone let through
+
+    def wrong(s):
+        return float(np.mean(np.einsum("ij,ij->i", state.normals * s[:, None], n) < 0))
+
+    assert wrong(kept) < 0.15 and wrong(open_) > 0.25, (wrong(kept), wrong(open_))

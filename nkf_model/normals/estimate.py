@@ -532,6 +532,37 @@ def _harmonic_signs(g, points, normals, sign, seed, noise=None, cancel_poll: Can
     return np.where(s >= 0, 1.0, -1.0)
 
 
+def winding_field(points, normals, spacing: float, cancel_poll: CancelPoll = None):
+    """The winding-number gradient the orientation uses (:class:`~nkf_model.points.winding.WindingGradient`,
+    leaving out :data:`WINDING_EXCLUDE` spacings around each query), over at most
+    :data:`WINDING_POINTS` points (a fixed random subset above).
+
+    Parameters
+    ----------
+    points, normals : (N, 3) float64
+        More than ``AREA_NEIGHBOURS`` points; unit normals of any sign.
+    spacing : float
+        Median point spacing, in the units of ``points``.
+
+    Returns
+    -------
+    field : WindingGradient
+        Call it with the signs of ``sub`` (and optionally queries).
+    sub : (M,) int64
+        The points it holds.
+    """
+    from ..points.winding import WindingGradient
+
+    n = len(points)
+    sub = np.arange(n)
+    sub_spacing = spacing
+    if n > WINDING_POINTS:
+        sub = np.sort(np.random.default_rng(1).choice(n, WINDING_POINTS, replace=False))
+        sub_spacing = spacing * float(np.sqrt(n / WINDING_POINTS))
+    field = WindingGradient(points[sub], normals[sub], WINDING_EXCLUDE * sub_spacing, cancel_poll=cancel_poll)
+    return field, sub
+
+
 def _winding_signs(points, normals, sign, fixed, layer, spacing, cancel_poll: CancelPoll = None):
     """Signs (N,) refined by the winding number of the oriented cloud (closed objects only).
 
@@ -549,16 +580,12 @@ def _winding_signs(points, normals, sign, fixed, layer, spacing, cancel_poll: Ca
     subset decides the rest once. Returns the signs and the field when it holds every point
     (else None).
     """
-    from ..points.winding import AREA_NEIGHBOURS, WindingGradient
+    from ..points.winding import AREA_NEIGHBOURS
 
     n = len(points)
     if n <= AREA_NEIGHBOURS:
         return sign, None
-    sub = np.arange(n)
-    sub_spacing = spacing
-    if n > WINDING_POINTS:
-        sub = np.sort(np.random.default_rng(1).choice(n, WINDING_POINTS, replace=False))
-        sub_spacing = spacing * float(np.sqrt(n / WINDING_POINTS))
+    field, sub = winding_field(points, normals, spacing, cancel_poll)
     need = np.where(layer, WINDING_LAYER_FIELD, 0.0)
 
     def follow(s, g, idx):
@@ -566,7 +593,6 @@ def _winding_signs(points, normals, sign, fixed, layer, spacing, cancel_poll: Ca
         free = ~fixed[idx] & (np.abs(f) >= need[idx]) & (f != 0)
         return np.where(free, np.where(f > 0, 1.0, -1.0), s[idx])
 
-    field = WindingGradient(points[sub], normals[sub], WINDING_EXCLUDE * sub_spacing, cancel_poll=cancel_poll)
     s = sign.copy()
     for _ in range(WINDING_ROUNDS):
         new = follow(s, field(s[sub], cancel_poll=cancel_poll), sub)
@@ -674,7 +700,8 @@ def _checked(sign, state, info, learned: bool, cancel_poll: CancelPoll):
     if learned and info.orientation == "outward":
         sign, flips = sign_check.flip_wrong(state, cancel_poll=cancel_poll)
         info.learned_check, info.learned_flips = flips is not None, flips or 0
-    sign, info.consistent_flips = tangent_plane_check(state, sign, cancel_poll)
+    sign, info.consistent_flips = tangent_plane_check(state, sign, cancel_poll,
+                                                      closed=info.orientation == "outward")
     return state.normals * sign[:, None], info
 
 
