@@ -19,6 +19,12 @@ def test_random_signs_on_a_sphere_become_outward_from_a_mostly_right_reference()
     assert np.all(np.einsum("ij,ij->i", n * s[:, None], p) > 0)
 
 
+def _winding(state):
+    from nkf_model.normals.estimate import winding_field
+
+    return lambda poll: winding_field(state.points, state.normals, state.spacing, poll)
+
+
 def _state(points):
     from nkf_model.normals import estimate
 
@@ -40,8 +46,8 @@ def test_the_check_takes_back_a_face_seeded_from_the_inside():
     wrong = sign.copy()
     cap = p[:, 2] < -0.8  # about 10 % of the sphere
     wrong[cap] *= -1
-    for closed in (False, True):  # the winding number agrees (a closed object)
-        fixed, flips = tangent_plane_check(state, wrong, closed=closed)
+    for winding in (None, _winding(state)):  # the winding number agrees (a closed object)
+        fixed, flips = tangent_plane_check(state, wrong, winding=winding)
         assert flips >= cap.sum() * 0.95
         assert np.mean(np.einsum("ij,ij->i", state.normals * fixed[:, None], p) > 0) > 0.99
 
@@ -121,9 +127,9 @@ def test_the_check_asks_the_rest_of_a_closed_object():
     p, n = _corpus_samples("quaternius__Windmill", 10_000)
     _, state = _state(p)
     sign, _ = sign_check.flip_wrong(state)  # as estimate_normals: the learned check comes first
-    kept, flips = consistent.tangent_plane_check(state, sign, closed=True)
+    kept, flips = consistent.tangent_plane_check(state, sign, winding=_winding(state))
     assert flips == 0 and np.array_equal(kept, sign)
-    open_, flips_open = consistent.tangent_plane_check(state, sign, closed=False)
+    open_, flips_open = consistent.tangent_plane_check(state, sign)
     assert flips_open > 0.2 * len(p)  # what the relation tests alone let through
 
     def wrong(s):

@@ -91,8 +91,8 @@ MIN_POINTS = 10_000
 # not flipped (:func:`rest_support`) may agree with the orientation's old sign at no more than this
 # share of the flipped points. The edge relations and the propagation share a blind spot (both say
 # "neighbours agree", wrong around thin and sharp parts); the winding number of the rest is a global
-# measure, and the same for both sign choices. Measured (2026-12-06, docs/real_scans.md): the right
-# corrections on 21 simulated scans of 13 `val` meshes: at most 6 % (a wrong cap of 10 % of a sphere:
+# measure, and the same for both sign choices. Measured (2026-12-06, docs/real_scans.md): the 21
+# corrections on simulated scans of 13 `val` meshes: at most 13 % (a wrong cap of 10 % of a sphere:
 # 0 %); the 9 wrong ones the relation tests kept on area samples of 10,000 points of the 52 `val`
 # meshes (quaternius__Windmill 11 -> 33 % of the signs wrong, Tank3 31 -> 39 %, Sofa 18 -> 24 %: the
 # normal-estimation gate of issue 5 failed): 27 to 75 %. Checked on what the rule was not fitted on
@@ -175,7 +175,7 @@ def consistent_signs(points: np.ndarray, normals: np.ndarray, reference: np.ndar
     return signs, int(n_pieces)
 
 
-def rest_support(state, sign: np.ndarray, flipped: np.ndarray, cancel_poll=None) -> float:
+def rest_support(state, sign: np.ndarray, flipped: np.ndarray, winding, cancel_poll=None) -> float:
     """Share of the ``flipped`` points whose sign in ``sign`` the winding number of the other points backs.
 
     Parameters
@@ -185,6 +185,9 @@ def rest_support(state, sign: np.ndarray, flipped: np.ndarray, cancel_poll=None)
         +1/-1 for ``state.normals``, before the flip.
     flipped : (Q,) int64
         Indices of the points a correction would flip.
+    winding : callable
+        ``winding(cancel_poll)`` returns the field and the points it holds
+        (:func:`nkf_model.normals.estimate.winding_field`); used when ``state.winding`` is None.
 
     Returns
     -------
@@ -197,16 +200,14 @@ def rest_support(state, sign: np.ndarray, flipped: np.ndarray, cancel_poll=None)
     if state.winding is not None:  # the orientation's own field, over every point
         field, sub = state.winding, slice(None)
     else:
-        from .estimate import winding_field
-
-        field, sub = winding_field(state.points, state.normals, state.spacing, cancel_poll)
+        field, sub = winding(cancel_poll)
     rest = sign.copy()
     rest[flipped] = 0.0
     g = field(rest[sub], state.points[flipped], cancel_poll=cancel_poll)
     return float(np.mean(np.einsum("ij,ij->i", g, state.normals[flipped]) * sign[flipped] < 0))
 
 
-def tangent_plane_check(state, sign: np.ndarray, cancel_poll=None, closed: bool = False) -> tuple[np.ndarray, int]:
+def tangent_plane_check(state, sign: np.ndarray, cancel_poll=None, winding=None) -> tuple[np.ndarray, int]:
     """The orientation's last step: :func:`consistent_signs` from its result, kept when it agrees
     clearly better with the orientation's own edge relations and, on closed objects, the winding
     number of the rest of the cloud backs it.
@@ -216,9 +217,11 @@ def tangent_plane_check(state, sign: np.ndarray, cancel_poll=None, closed: bool 
     state : :class:`~nkf_model.normals.sign_check.OrientationState`
     sign : (N,) float64
         The orientation's signs (+1/-1) for ``state.normals``.
-    closed : bool
-        The points sample closed objects (orientation ``"outward"``): the winding number of the rest
-        of the cloud must also back the flip (:data:`REST_SUPPORT`).
+    winding : callable, optional
+        Given for closed objects (orientation ``"outward"``): ``winding(cancel_poll)`` returns a
+        winding-number field and the points it holds (:func:`nkf_model.normals.estimate.winding_field`;
+        ``state.winding`` is used instead where the orientation kept one). The winding number of the
+        rest of the cloud must then also back the flip (:data:`REST_SUPPORT`). None: open surfaces.
 
     Returns
     -------
@@ -252,12 +255,12 @@ def tangent_plane_check(state, sign: np.ndarray, cancel_poll=None, closed: bool 
     cleaned = (before - after) / (before - best) if before > best else 0.0
     if not (flips <= SMALL_FLIPS * n or gain >= GAIN_PER_FLIP * flips / n or cleaned >= CLEAN_SHARE):
         return sign, 0
-    if closed and not _winding_agrees(state, sign, np.flatnonzero(flip < 0), cancel_poll):
+    if winding is not None and not _winding_agrees(state, sign, np.flatnonzero(flip < 0), winding, cancel_poll):
         return sign, 0
     return candidate, flips
 
 
-def _winding_agrees(state, sign, flipped, cancel_poll) -> bool:
+def _winding_agrees(state, sign, flipped, winding, cancel_poll) -> bool:
     if len(flipped) > WINDING_QUERIES:
         flipped = np.sort(np.random.default_rng(0).choice(flipped, WINDING_QUERIES, replace=False))
-    return rest_support(state, sign, flipped, cancel_poll) <= REST_SUPPORT
+    return rest_support(state, sign, flipped, winding, cancel_poll) <= REST_SUPPORT

@@ -700,8 +700,13 @@ def _checked(sign, state, info, learned: bool, cancel_poll: CancelPoll):
     if learned and info.orientation == "outward":
         sign, flips = sign_check.flip_wrong(state, cancel_poll=cancel_poll)
         info.learned_check, info.learned_flips = flips is not None, flips or 0
-    sign, info.consistent_flips = tangent_plane_check(state, sign, cancel_poll,
-                                                      closed=info.orientation == "outward")
+    winding = None
+    if info.orientation == "outward":  # closed objects: the winding number backs the check
+
+        def winding(poll):
+            return winding_field(state.points, state.normals, state.spacing, poll)
+
+    sign, info.consistent_flips = tangent_plane_check(state, sign, cancel_poll, winding=winding)
     return state.normals * sign[:, None], info
 
 
