@@ -532,6 +532,14 @@ def _harmonic_signs(g, points, normals, sign, seed, noise=None, cancel_poll: Can
     return np.where(s >= 0, 1.0, -1.0)
 
 
+def _subset(n: int, cap: int, spacing: float, seed: int):
+    """Indices (M,) of a fixed random subset of at most ``cap`` of ``n`` points, and its spacing."""
+    if n <= cap:
+        return np.arange(n), spacing
+    sub = np.sort(np.random.default_rng(seed).choice(n, cap, replace=False))
+    return sub, spacing * float(np.sqrt(n / cap))
+
+
 def winding_field(points, normals, spacing: float, cancel_poll: CancelPoll = None):
     """The winding-number gradient the orientation uses (:class:`~nkf_model.points.winding.WindingGradient`,
     leaving out :data:`WINDING_EXCLUDE` spacings around each query), over at most
@@ -553,12 +561,7 @@ def winding_field(points, normals, spacing: float, cancel_poll: CancelPoll = Non
     """
     from ..points.winding import WindingGradient
 
-    n = len(points)
-    sub = np.arange(n)
-    sub_spacing = spacing
-    if n > WINDING_POINTS:
-        sub = np.sort(np.random.default_rng(1).choice(n, WINDING_POINTS, replace=False))
-        sub_spacing = spacing * float(np.sqrt(n / WINDING_POINTS))
+    sub, sub_spacing = _subset(len(points), WINDING_POINTS, spacing, seed=1)
     field = WindingGradient(points[sub], normals[sub], WINDING_EXCLUDE * sub_spacing, cancel_poll=cancel_poll)
     return field, sub
 
@@ -723,11 +726,7 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     # The views see a random subset of at most VIEW_POINTS points (drawn as larger discs): enough
     # to seed the propagation, at a bounded cost.
     n = len(p)
-    sub = np.arange(n)
-    view_spacing = spacing
-    if n > VIEW_POINTS:
-        sub = np.sort(np.random.default_rng(0).choice(n, VIEW_POINTS, replace=False))
-        view_spacing = spacing * float(np.sqrt(n / VIEW_POINTS))
+    sub, view_spacing = _subset(n, VIEW_POINTS, spacing, seed=0)
     noise_level = 0.0 if noise is None else float(np.median(noise))
     # Layers closer than the views' depth tolerance (the two faces of a thin wall) are told apart
     # by their neighbours: a point with another layer on its viewer's side is hidden. Objects
