@@ -214,3 +214,17 @@ def test_global_sign_fit_outvotes_a_wrong_branch():
     fixed = _harmonic_signs(g, p, e, wrong, seed)
     assert (wrong == truth).mean() < 0.9
     assert (fixed == truth).mean() > 0.99
+
+
+def test_pca_normals_at_a_subset_are_the_rows_of_the_whole():
+    from nkf_model.normals.estimate import pca_normals
+
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(30_000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    p += rng.normal(scale=0.003, size=p.shape)
+    at = np.sort(rng.choice(len(p), 700, replace=False))
+    whole, res_whole = pca_normals(p)
+    part, res_part = pca_normals(p, at=at)
+    assert part.shape == (700, 3)
+    assert np.array_equal(whole[at], part) and np.array_equal(res_whole[at], res_part)

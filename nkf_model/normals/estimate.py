@@ -162,7 +162,8 @@ def check_orientation(orientation, viewpoints) -> str:
     return orientation
 
 
-def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] = None, cancel_poll: CancelPoll = None):
+def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] = None, cancel_poll: CancelPoll = None,
+                at: Optional[np.ndarray] = None):
     """Unoriented unit normals by PCA over the ``k`` nearest neighbours.
 
     Parameters
@@ -173,19 +174,22 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
         Neighbours per point, the point itself included (clipped to N).
     tree : cKDTree, optional
         A tree already built on ``points``.
+    at : (M,) int64, optional
+        Only these points' normals (their neighbours still come from all of ``points``); default all.
 
     Returns
     -------
     normals : (N, 3) float64
-        Unit vectors, sign arbitrary.
+        Unit vectors, sign arbitrary (M rows with ``at``).
     residual : (N,) float64
         Weighted root-mean-square distance of the neighbours to the fitted plane (weights of the
         last refit), in the units of ``points``: the local noise level (0 on an exact plane).
     """
     p = np.ascontiguousarray(points, dtype=np.float64)
-    n = len(p)
-    k = int(min(max(k, 3), n))
+    k = int(min(max(k, 3), len(p)))
     tree = tree if tree is not None else cKDTree(p)
+    q = p if at is None else p[at]
+    n = len(q)
     normals = np.empty((n, 3))
     residual = np.empty(n)
     k0 = min(k, INITIAL_K)
@@ -193,7 +197,7 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
         if cancel_poll is not None:
             cancel_poll()
         e = min(n, s + _CHUNK)
-        dist, idx = tree.query(p[s:e], k=k, workers=-1)
+        dist, idx = tree.query(q[s:e], k=k, workers=-1)
         nb = p[idx]  # (c, k, 3)
         sigma = SIGMA * dist[:, 1 : min(k, 5)].mean(axis=1, keepdims=True) + 1e-300
         # Two starts: the few nearest neighbours (one face of a thin plate) and all k (plain PCA).
@@ -869,10 +873,11 @@ def _estimate_regular(points, k: int, orientation: str, viewpoints, cancel_poll:
                         cancel_poll=cancel_poll)
     oriented, info = _checked(*_estimate(p[regular], k, orientation, viewpoints, cancel_poll), learned=True,
                               cancel_poll=cancel_poll)
-    nrm, _ = pca_normals(p, k, tree=tree, cancel_poll=cancel_poll)
+    rest = np.flatnonzero(~regular)
+    own, _ = pca_normals(p, k, tree=tree, cancel_poll=cancel_poll, at=rest)
+    nrm = np.empty_like(p)
     nrm[regular] = oriented
-    rest = ~regular
-    nrm[rest] = _vote_signs(p[rest], nrm[rest], p[regular], oriented)
+    nrm[rest] = _vote_signs(p[rest], own, p[regular], oriented)
     return nrm, info
 
 
