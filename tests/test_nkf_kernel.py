@@ -49,6 +49,24 @@ def test_fused_12d_loops_match_the_generic_loops(acute):
     np.testing.assert_allclose(nk.gmatrix(au, bt, acute), g_ref, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("acute", [False, True])
+def test_fused_12d_sum_at_the_centres_themselves(acute):
+    """gsum12 computes |q - c|^2 as 2 - 2 q.c: at a query that is a centre (d2 = 0, the worst case)
+    it may differ from the difference form by the bound its docstring gives, no more."""
+    b = _homog(400, 8, 5)
+    bu, _ = split_unit(b)
+    bt = np.ascontiguousarray(bu.T)
+    beta = np.random.default_rng(6).normal(size=len(bu))
+    ref = nk.gsum(bu, bt, beta)
+    err = np.abs(nk.gsum12(bu, bt, beta, acute) - ref).max()
+    assert err <= 3e-8 * np.abs(beta).sum()
+    # ... and a query a little off each centre is as accurate as anywhere
+    q = bu + 1e-3 * np.random.default_rng(7).normal(size=bu.shape)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    np.testing.assert_allclose(nk.gsum12(q, bt, beta, acute), nk.gsum(q, bt, beta), rtol=1e-11,
+                               atol=1e-11 * np.abs(beta).sum())
+
+
 def test_kernel_matrix_and_its_gradient_match_autograd():
     a = torch.tensor(_homog(25, 8, 4, scale=0.3), requires_grad=True)
     b = torch.tensor(_homog(18, 8, 5, scale=0.3), requires_grad=True)

@@ -247,16 +247,46 @@ def _row_g12(q, i, ct, buf, acute):
 
 @nb.njit(parallel=True, **_OPTS)
 def gsum12(q, ct, beta, acute):
-    """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for 12-D unit vectors; ``ct`` is (12, M)."""
+    """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for 12-D unit vectors; ``ct`` is (12, M).
+
+    One fused loop with ``|q - c|^2 = 2 - 2 q.c`` (12 multiply-adds per pair instead of 12
+    differences and 12 multiply-adds: 1.5x faster). The dot form loses relative accuracy only
+    where ``q`` nearly coincides with a centre: an absolute error of a few 1e-16 in ``d2`` moves
+    ``g`` by at most about ``sqrt(1e-15)`` ~ 3e-8 there (at ``d2 = 0``) and by ``1e-15 / sqrt(d2)``
+    elsewhere, far below what moves a mesh vertex (measured: meshes at resolution 128 of a learned fit
+    agree with the difference form's to 4e-8 of the box, the float32 of the vertices). The Gram
+    matrix, whose diagonal is exactly such a pair, keeps the difference form (:func:`_row_g12`).
+    """
     nq = q.shape[0]
     nc = ct.shape[1]
     out = np.empty(nq)
+    r0, r1, r2, r3, r4, r5 = ct[0], ct[1], ct[2], ct[3], ct[4], ct[5]
+    r6, r7, r8, r9, r10, r11 = ct[6], ct[7], ct[8], ct[9], ct[10], ct[11]
     for i in nb.prange(nq):
-        buf = np.empty(nc)
-        _row_g12(q, i, ct, buf, acute)
+        q0 = q[i, 0]
+        q1 = q[i, 1]
+        q2 = q[i, 2]
+        q3 = q[i, 3]
+        q4 = q[i, 4]
+        q5 = q[i, 5]
+        q6 = q[i, 6]
+        q7 = q[i, 7]
+        q8 = q[i, 8]
+        q9 = q[i, 9]
+        q10 = q[i, 10]
+        q11 = q[i, 11]
         s = 0.0
-        for j in range(nc):
-            s += beta[j] * buf[j]
+        # A loop-invariant branch: LLVM unswitches it, as in _sum4.
+        if acute:
+            for j in range(nc):
+                d = (q0 * r0[j] + q1 * r1[j] + q2 * r2[j] + q3 * r3[j] + q4 * r4[j] + q5 * r5[j]
+                     + q6 * r6[j] + q7 * r7[j] + q8 * r8[j] + q9 * r9[j] + q10 * r10[j] + q11 * r11[j])
+                s += beta[j] * _g_acute(2.0 - 2.0 * d)
+        else:
+            for j in range(nc):
+                d = (q0 * r0[j] + q1 * r1[j] + q2 * r2[j] + q3 * r3[j] + q4 * r4[j] + q5 * r5[j]
+                     + q6 * r6[j] + q7 * r7[j] + q8 * r8[j] + q9 * r9[j] + q10 * r10[j] + q11 * r11[j])
+                s += beta[j] * _g(2.0 - 2.0 * d)
         out[i] = s
     return out
 

@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from ..errors import InputWarning, InvalidParameterError, NoSurfaceError
 from ..fit.balloon_check import BalloonCheck, CheckNodes, needs_data_free, prefer_data_free
@@ -41,6 +40,7 @@ from ..surface.evaluate import evaluate_sparse
 from ..surface.mesh import Mesh, triangulate, vertex_normals
 from ..surface.trim import clean_scan_mesh
 from . import budget
+from .blas_threads import blas_threads
 from .device_fallback import run_with_cpu_fallback
 from .progress import Tracker
 from .query_cache import QueryCache, _Known
@@ -120,6 +120,7 @@ class _Shared:
         self.keep = keep
         self.gram: np.ndarray | None = None
         self.eigen: GramEigen | None = None
+        self.eigen_b: np.ndarray | None = None  # eigen.project(y): each later lambda is one product
         self.pou: PoURefit | None = None
         self.blend: BlendedField | None = None
         self.blend_q: np.ndarray | None = None
@@ -265,7 +266,7 @@ class Fit:
             changes["trim"] = trim
         opts = self.options.replace(**changes) if changes else self.options
         t0 = time.perf_counter()
-        with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        with blas_threads(BLAS_THREADS):
             track = Tracker(progress, cancel, stages=mesh_stages(opts, self._prep.rgb is not None, len(self._prep.x)))
             out = self._mesh(track, opts, t0)
         out.stats["fit_timings"] = dict(self.timings)
@@ -280,7 +281,7 @@ class Fit:
         """
         opts = self.options.replace(lam=lam)  # validates
         new = Fit(self._prep, opts.lam, self._shared)
-        with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        with blas_threads(BLAS_THREADS):
             track = Tracker(progress, cancel, stages=["solve"])
             new._solve(track)
             track.finish()
@@ -295,11 +296,12 @@ class Fit:
         eigendecomposition cannot be interrupted. Returns :attr:`factorized`; thread-safe."""
         s = self._shared
         poll = Tracker(None, cancel, stages=["solve"]).cancel_poll
-        with s.lock, threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        with s.lock, blas_threads(BLAS_THREADS):
             if self._prep.kind == "dense" and s.eigen is None and s.gram is not None:
                 poll()
                 eigen = GramEigen.of(s.gram)
                 s.gram = None
+                s.eigen_b = eigen.project(self._prep.y)
                 if self._prep.far_field and s.blend is not None:
                     s.blend_k = self._calibration_matrix(poll)
                 s.eigen = eigen
@@ -320,7 +322,7 @@ class Fit:
         first = s.pou is None and s.blend is None and s.gram is None and s.eigen is None
         if p.kind == "dense":
             if s.eigen is not None and eng is p.engine:
-                alpha = s.eigen.solve(p.y, len(p.a) * lam)
+                alpha = s.eigen.solve_projected(s.eigen_b, len(p.a) * lam)
                 info = SolveInfo("dense", len(p.a), len(p.a))
             elif s.keep and first:
                 alpha, info, s.gram = solve_dense(p.a, p.y, lam, eng, cancel_poll=track.cancel_poll, keep_gram=True)

@@ -12,7 +12,6 @@ from collections.abc import Callable
 
 import numpy as np
 from scipy.spatial import cKDTree
-from threadpoolctl import threadpool_limits
 
 from ..errors import InputWarning, MissingNormalsError
 from ..fit.augment import augment, default_eps
@@ -31,6 +30,7 @@ from ..points.voxel_reduce import voxel_for_count, voxel_reduce
 from ..surface.colors import as_rgb8
 from ..surface.mesh import Mesh
 from . import budget
+from .blas_threads import blas_threads
 from .fitted import BLAS_THREADS, FALKON_TOL, FAR_END, FAR_START, Fit, Prepared, _Shared, mesh_stages
 from .progress import Tracker
 
@@ -208,7 +208,7 @@ def reconstruct(
             "or use normals_mode='auto' to estimate them"
         )
     model = load_weights(opts.weights) if opts.method == "nkf" else None
-    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+    with blas_threads(BLAS_THREADS):
         return _reconstruct(points, normals, opts, model=model, progress=progress, cancel=cancel,
                             viewpoints=viewpoints, colors=colors)
 
@@ -248,7 +248,7 @@ def fit(
             "or use normals_mode='auto' to estimate them"
         )
     model = load_weights(opts.weights) if opts.method == "nkf" else None
-    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+    with blas_threads(BLAS_THREADS):
         return _reconstruct(points, normals, opts, model=model, progress=progress, cancel=cancel,
                             viewpoints=viewpoints, colors=colors, mesh=False, keep=keep_factors)
 
