@@ -366,3 +366,64 @@ def test_escape_stops_a_live_update(sphere, bpy_module):
     live.STATE.key = None
     assert runner.finish(bpy.context, key) is None and len(bpy.data.objects) == n
     assert modal(None, bpy.context, Event) == {"FINISHED", "PASS_THROUGH"}  # nothing in flight: it ends
+
+
+def _wait(runner, key, timeout=120.0):
+    t0 = time.perf_counter()
+    while runner.poll(key) == "running":
+        assert time.perf_counter() - t0 < timeout
+        time.sleep(0.05)
+    return runner.poll(key)
+
+
+def _orphan_meshes(bpy):
+    return [m.name for m in bpy.data.meshes if m.users == 0]
+
+
+def test_undo_and_redo_during_a_job_update_the_right_object(sphere, bpy_module):
+    """Undo and redo rebuild every object in memory while a job runs: the job's result goes to the
+    object that stands for its target then (by ``session_uid``), or to a new one when undo took the
+    target away; never to a stale or wrong object, no orphan data."""
+    from nkf_model.options import Options
+
+    bpy = bpy_module
+    runner, result = ext("runner"), ext("result")
+    bpy.ops.ed.undo_push(message="sphere only")
+    res = run(bpy)
+    res_name, res_uid = res.name, runner.key_of(res)
+    bpy.ops.ed.undo_push(message="with its result")
+    # 1. undo then redo while the job runs: the result comes back and is updated in place
+    key = runner.start(bpy.context, sphere, Options(method="splines", resolution=48, device="cpu"))
+    assert bpy.ops.ed.undo() == {"FINISHED"}
+    assert bpy.data.objects.get(res_name) is None
+    assert bpy.ops.ed.redo() == {"FINISHED"}
+    back = bpy.data.objects[res_name]
+    assert runner.key_of(back) == res_uid  # undo keeps session_uid: the job finds it again
+    assert _wait(runner, key) == "done"
+    ob = runner.finish(bpy.context, key)
+    assert ob == bpy.data.objects[res_name] and ob["nkf_resolution"] == 48
+    assert [o.name for o in bpy.data.objects if result.is_result(o)] == [res_name]
+    assert _orphan_meshes(bpy) == []
+    # 2. undo back to before the result existed while the job runs: a new result, not a stale one
+    src = bpy.data.objects["sphere"]
+    key = runner.start(bpy.context, src, Options(method="splines", resolution=40, device="cpu"))
+    assert bpy.ops.ed.undo() == {"FINISHED"}  # to "sphere only" (the finish above pushed no step)
+    assert bpy.data.objects.get(res_name) is None
+    assert _wait(runner, key) == "done"
+    ob = runner.finish(bpy.context, key)
+    src = bpy.data.objects["sphere"]
+    results = [o for o in bpy.data.objects if result.is_result(o)]
+    assert results == [ob] and ob["nkf_resolution"] == 40 and ob["nkf_source_ref"] == src
+    assert ob.name in bpy.context.view_layer.objects and ob.users_collection
+    assert _orphan_meshes(bpy) == []
+    # 3. the source deleted while its job runs: the result is placed where the source was
+    bpy.ops.ed.undo_push(message="second result")
+    m, src_data = src.matrix_world.copy(), src.data.name
+    key = runner.start(bpy.context, src, Options(method="splines", resolution=36, device="cpu"))
+    bpy.data.objects.remove(src)
+    bpy.ops.ed.undo_push(message="source deleted")
+    assert _wait(runner, key) == "done"
+    ob = runner.finish(bpy.context, key)
+    assert ob is not None and ob["nkf_resolution"] == 36 and result.source_of(ob) is None
+    assert np.allclose(np.array(ob.matrix_world), np.array(m))
+    assert _orphan_meshes(bpy) == [src_data]  # what remove() left of the source, nothing of ours
