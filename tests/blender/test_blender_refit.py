@@ -427,3 +427,35 @@ def test_undo_and_redo_during_a_job_update_the_right_object(sphere, bpy_module):
     assert ob is not None and ob["nkf_resolution"] == 36 and result.source_of(ob) is None
     assert np.allclose(np.array(ob.matrix_world), np.array(m))
     assert _orphan_meshes(bpy) == [src_data]  # what remove() left of the source, nothing of ours
+
+
+def test_source_deleted_while_a_live_update_runs(sphere, bpy_module):
+    """The update in flight still lands on its own result (the mesh was computed from the points as
+    they were), nothing else changes, and the next change says why Live cannot go on."""
+    bpy = bpy_module
+    live, result, fitcache = ext("live"), ext("result"), ext("fitcache")
+    res = run(bpy, resolution=96)
+    other = run(bpy, resolution=40, use_new_object=True)  # a second result of the same source
+    other_mesh = other.data.name
+    s = bpy.context.scene.nkf_settings
+    s.method, s.resolution = "SPLINES", 96
+    bpy.context.view_layer.objects.active = res
+    s.live = True
+    n_obj = len(bpy.data.objects)
+    s.regularization = 1e-5
+    live.tick()
+    assert live.STATE.key is not None  # a preview job is in flight
+    src_data = sphere.data.name
+    bpy.data.objects.remove(sphere)
+    bpy.context.view_layer.update()
+    assert len(fitcache.CACHE) == 0  # the kept fit went with its source
+    drive_live(live)
+    assert res["nkf_lambda"] == pytest.approx(1e-5) and result.source_of(res) is None
+    assert other.data.name == other_mesh and other["nkf_resolution"] == 40  # the other result untouched
+    assert len(bpy.data.objects) == n_obj - 1
+    assert _orphan_meshes(bpy) == [src_data]  # what remove() left of the source, nothing of ours
+    s.resolution = 80  # the next change: no source, no fit: one message, nothing runs
+    bpy.context.view_layer.objects.active = res
+    drive_live(live)
+    assert live.STATE.key is None and "Live needs" in live.STATE.message
+    assert res["nkf_resolution"] != 80
