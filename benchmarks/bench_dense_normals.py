@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from nkf_model.pipeline.reconstruct import reconstruct
 from nkf_model.train import corpus, metrics
 
-from .bench_range_scans import score
+from .bench_range_scans import score, select_entries
 
 
 def noisy_samples(entry, n: int, spacing_noise: float):
@@ -64,12 +64,7 @@ def main(argv=None) -> int:
     ap.add_argument("--spacing-noise", type=float, default=0.5, help="noise, times the median point spacing")
     ap.add_argument("--resolution", type=int, default=256)
     a = ap.parse_args(argv)
-    rows_all = corpus.manifest()
-    if a.meshes:
-        by = {e.name: e for e in rows_all}
-        entries = [by[m] for m in a.meshes]
-    else:
-        entries = [e for e in rows_all if e.split == a.split][a.start :: a.every]
+    entries = select_entries(a.meshes, a.split, a.every, a.start)
     print(f"{a.points:,} points, noise {a.spacing_noise} of the spacing, splines, resolution {a.resolution}\n")
     print("| mesh | normals | Chamfer-L1 | normal consistency | F-score 0.5 % | pieces | largest piece | time (s) |")
     print("|---|---|---:|---:|---:|---:|---:|---:|")

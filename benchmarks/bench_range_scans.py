@@ -176,6 +176,15 @@ def table(rows, methods) -> str:
     return "\n".join(lines)
 
 
+def select_entries(meshes, split: str, every: int, start: int = 0) -> list:
+    """Corpus entries by name (``meshes``), or every ``every``-th of ``split`` from ``start``."""
+    rows_all = corpus.manifest()
+    if meshes:
+        by = {e.name: e for e in rows_all}
+        return [by[m] for m in meshes]
+    return [e for e in rows_all if e.split == split][start::every]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--meshes", nargs="*", help="corpus mesh names (default: --split with --every)")
@@ -193,12 +202,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, help="append the table to this Markdown file")
     a = ap.parse_args(argv)
-    rows_all = corpus.manifest()
-    if a.meshes:
-        by = {e.name: e for e in rows_all}
-        entries = [by[m] for m in a.meshes]
-    else:
-        entries = [e for e in rows_all if e.split == a.split][:: a.every]
+    entries = select_entries(a.meshes, a.split, a.every)
     scans = {"views": a.views, "pixels": a.pixels, "noise": a.noise, "misregistration": a.misregistration,
              "elevations": tuple(a.elevations)}
     rows = run(entries, a.methods, a.resolution, scans, seed=a.seed)

@@ -245,6 +245,14 @@ def _row_g12(q, i, ct, buf, acute):
             buf[j] = _g(d2)
 
 
+@nb.njit(inline="always", **_OPTS)
+def _dot12(qi, r, j):
+    """q . c[j] for a 12-D query ``qi`` and centres given by the 12 rows ``r`` of their transpose."""
+    return (qi[0] * r[0][j] + qi[1] * r[1][j] + qi[2] * r[2][j] + qi[3] * r[3][j] + qi[4] * r[4][j]
+            + qi[5] * r[5][j] + qi[6] * r[6][j] + qi[7] * r[7][j] + qi[8] * r[8][j] + qi[9] * r[9][j]
+            + qi[10] * r[10][j] + qi[11] * r[11][j])
+
+
 @nb.njit(parallel=True, **_OPTS)
 def gsum12(q, ct, beta, acute):
     """out[i] = sum_j beta[j] g(|q[i] - c[j]|^2) for 12-D unit vectors; ``ct`` is (12, M).
@@ -260,33 +268,17 @@ def gsum12(q, ct, beta, acute):
     nq = q.shape[0]
     nc = ct.shape[1]
     out = np.empty(nq)
-    r0, r1, r2, r3, r4, r5 = ct[0], ct[1], ct[2], ct[3], ct[4], ct[5]
-    r6, r7, r8, r9, r10, r11 = ct[6], ct[7], ct[8], ct[9], ct[10], ct[11]
+    r = (ct[0], ct[1], ct[2], ct[3], ct[4], ct[5], ct[6], ct[7], ct[8], ct[9], ct[10], ct[11])
     for i in nb.prange(nq):
-        q0 = q[i, 0]
-        q1 = q[i, 1]
-        q2 = q[i, 2]
-        q3 = q[i, 3]
-        q4 = q[i, 4]
-        q5 = q[i, 5]
-        q6 = q[i, 6]
-        q7 = q[i, 7]
-        q8 = q[i, 8]
-        q9 = q[i, 9]
-        q10 = q[i, 10]
-        q11 = q[i, 11]
+        qi = q[i]
         s = 0.0
         # A loop-invariant branch: LLVM unswitches it, as in _sum4.
         if acute:
             for j in range(nc):
-                d = (q0 * r0[j] + q1 * r1[j] + q2 * r2[j] + q3 * r3[j] + q4 * r4[j] + q5 * r5[j]
-                     + q6 * r6[j] + q7 * r7[j] + q8 * r8[j] + q9 * r9[j] + q10 * r10[j] + q11 * r11[j])
-                s += beta[j] * _g_acute(2.0 - 2.0 * d)
+                s += beta[j] * _g_acute(2.0 - 2.0 * _dot12(qi, r, j))
         else:
             for j in range(nc):
-                d = (q0 * r0[j] + q1 * r1[j] + q2 * r2[j] + q3 * r3[j] + q4 * r4[j] + q5 * r5[j]
-                     + q6 * r6[j] + q7 * r7[j] + q8 * r8[j] + q9 * r9[j] + q10 * r10[j] + q11 * r11[j])
-                s += beta[j] * _g(2.0 - 2.0 * d)
+                s += beta[j] * _g(2.0 - 2.0 * _dot12(qi, r, j))
         out[i] = s
     return out
 
