@@ -182,7 +182,7 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
     normals : (N, 3) float64
         Unit vectors, sign arbitrary (M rows with ``at``).
     residual : (N,) float64
-        Weighted root-mean-square distance of the neighbours to the fitted plane (weights of the
+        (M rows with ``at``.) Weighted root-mean-square distance of the neighbours to the fitted plane (weights of the
         last refit), in the units of ``points``: the local noise level (0 on an exact plane).
     """
     p = np.ascontiguousarray(points, dtype=np.float64)
@@ -900,13 +900,8 @@ def _estimate_coarse(points, k: int, orientation: str, viewpoints, cancel_poll: 
     red = voxel_reduce(p, None, None, voxel_for_count(p, COARSE_POINTS, start=median_spacing(p)))
     coarse, info = _checked(*_estimate(red.points, k, orientation, viewpoints, cancel_poll), learned=True,
                             cancel_poll=cancel_poll)
-    tree = cKDTree(p)
-    nrm, _ = pca_normals(p, k, tree=tree, cancel_poll=cancel_poll)
-    d, idx = cKDTree(red.points).query(p, k=COARSE_VOTERS)
-    w = 1.0 / np.maximum(d, 1e-12)
-    vote = np.einsum("nk,nk->n", w, np.einsum("nkj,nj->nk", coarse[idx], nrm))
-    nrm[vote < 0] *= -1.0
-    return nrm, info
+    nrm, _ = pca_normals(p, k, tree=cKDTree(p), cancel_poll=cancel_poll)
+    return _vote_signs(p, nrm, red.points, coarse), info
 
 
 def _estimate(points, k: int, orientation: str, viewpoints, cancel_poll: CancelPoll = None):
