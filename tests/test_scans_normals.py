@@ -228,3 +228,51 @@ def test_pca_normals_at_a_subset_are_the_rows_of_the_whole():
     part, res_part = pca_normals(p, at=at)
     assert part.shape == (700, 3)
     assert np.array_equal(whole[at], part) and np.array_equal(res_whole[at], res_part)
+
+
+def _planes_by_eigh(nb, sigma, k0, reweights):
+    """The weighted plane fits of ``pca_normals`` written with NumPy and LAPACK's eigh (the
+    implementation before the compiled one): the reference the compiled fits must reproduce."""
+    c, k, _ = nb.shape
+    normals, residual = np.empty((c, 3)), np.empty(c)
+    best = np.full(c, -1.0)
+    for first in dict.fromkeys((k0, k)):
+        w = np.zeros((c, k))
+        w[:, :first] = 1.0
+        for _ in range(reweights + 1):
+            ws = w / w.sum(axis=1, keepdims=True)
+            d = nb - np.einsum("ck,cki->ci", ws, nb)[:, None, :]
+            normal = np.linalg.eigh(np.einsum("ck,cki,ckj->cij", ws, d, d))[1][:, :, 0]
+            r = np.einsum("cki,ci->ck", d, normal)
+            w = np.exp(-((r / sigma[:, None]) ** 2))
+        score = w.sum(axis=1)
+        better = score > best
+        best[better] = score[better]
+        normals[better] = normal[better]
+        residual[better] = np.sqrt(np.sum(w / score[:, None] * r * r, axis=1))[better]
+    return normals, residual
+
+
+@pytest.mark.parametrize("shape", ["noisy sphere", "thin plate", "repeated points"])
+def test_compiled_plane_fits_match_eigh(shape):
+    from scipy.spatial import cKDTree
+
+    from nkf_model.normals._pca_kernels import weighted_planes
+
+    rng = np.random.default_rng(5)
+    if shape == "noisy sphere":
+        p = rng.normal(size=(3000, 3))
+        p = p / np.linalg.norm(p, axis=1, keepdims=True) + rng.normal(scale=0.01, size=(3000, 3))
+    elif shape == "thin plate":  # two faces 0.01 apart: the first start keeps one face
+        p = rng.uniform(-1, 1, (3000, 3))
+        p[:, 2] = np.where(rng.random(3000) < 0.5, 0.0, 0.01)
+    else:
+        p = np.repeat(rng.uniform(size=(300, 3)), 3, axis=0)
+    dist, idx = cKDTree(p).query(p, k=16)
+    nb, sigma = p[idx], dist[:, 1:5].mean(axis=1) + 1e-300
+    want_n, want_r = _planes_by_eigh(nb, sigma, 7, 2)
+    got_n, got_r = np.empty((len(p), 3)), np.empty(len(p))
+    weighted_planes(nb, sigma, 7, 2, got_n, got_r)
+    assert np.allclose(np.linalg.norm(got_n, axis=1), 1.0)
+    assert np.max(1.0 - np.abs(np.sum(got_n * want_n, axis=1))) < 1e-9
+    assert np.allclose(got_r, want_r, rtol=1e-7, atol=1e-15)

@@ -71,6 +71,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InvalidParameterError
 from . import sign_check
+from ._pca_kernels import weighted_planes
 from ._propagate import first_points, spanning_order
 from ._propagate import propagate_signs as _propagate_signs
 from .edges import SIG_NOISE, WINDING_EXCLUDE, across_significant, edge_relation, relation_matrix
@@ -199,33 +200,13 @@ def pca_normals(points: np.ndarray, k: int = DEFAULT_K, tree: Optional[cKDTree] 
         e = min(n, s + _CHUNK)
         dist, idx = tree.query(q[s:e], k=k, workers=-1)
         nb = p[idx]  # (c, k, 3)
-        sigma = SIGMA * dist[:, 1 : min(k, 5)].mean(axis=1, keepdims=True) + 1e-300
+        sigma = SIGMA * dist[:, 1 : min(k, 5)].mean(axis=1) + 1e-300
         # Two starts: the few nearest neighbours (one face of a thin plate) and all k (plain PCA).
         # Each is refitted with weights that fade off its plane; the fit that keeps the most
-        # neighbours on its plane wins.
-        best_score = np.full(e - s, -1.0)
-        for first in (k0, k):
-            w = np.zeros(nb.shape[:2])
-            w[:, :first] = 1.0
-            for it in range(REWEIGHTS + 1):
-                ws = w / w.sum(axis=1, keepdims=True)
-                centre = np.einsum("ck,cki->ci", ws, nb)
-                d = nb - centre[:, None, :]
-                cov = np.einsum("ck,cki,ckj->cij", ws, d, d)
-                lam, vec = np.linalg.eigh(cov)
-                normal = vec[:, :, 0]
-                r = np.einsum("cki,ci->ck", d, normal)
-                w = np.exp(-((r / sigma) ** 2))
-            score = w.sum(axis=1)
-            better = score > best_score
-            best_score[better] = score[better]
-            normals[s:e][better] = normal[better]
-            # Noise: the spread of the neighbours that the fit kept (weights near 1) around the
-            # plane; the other face of a thin plate has weights near 0 and does not inflate it.
-            wn = w / w.sum(axis=1, keepdims=True)
-            residual[s:e][better] = np.sqrt(np.einsum("ck,ck->c", wn, r * r))[better]
-            if k0 == k:
-                break
+        # neighbours on its plane wins. Noise: the spread of the neighbours that the fit kept
+        # (weights near 1) around the plane; the other face of a thin plate has weights near 0
+        # and does not inflate it.
+        weighted_planes(nb, sigma, k0, REWEIGHTS, normals[s:e], residual[s:e])
     return normals, residual
 
 
