@@ -30,7 +30,7 @@ def _smallest_eigvec(a, v):  # pragma: no cover - compiled
             apq = a[p, q]
             app = a[p, p]
             aqq = a[q, q]
-            if abs(apq) <= 1e-18 * (abs(app) + abs(aqq)) or apq == 0.0:
+            if abs(apq) <= 1e-18 * (abs(app) + abs(aqq)):  # zero included
                 a[p, q] = 0.0
                 a[q, p] = 0.0
                 continue
