@@ -25,7 +25,10 @@ Two steps, both on the CPU with SciPy:
       one side of its plane (the plate's other face) is seeded with the normal pointing away from
       them (:func:`layer_votes`); that holds for a solid plate and not for the facing sides of a
       narrow gap, so it is used only on connected layer regions whose view-seeded points agree
-      with it (:func:`_layer_seeds`), and only in the global fit of step c, not as a seed of b.
+      with it and lie on both faces (:func:`_layer_seeds`), and only in the global fit of step c,
+      not as a seed of b. Both faces, because a misregistered scan is layered too: two copies of
+      one surface, the inner one hidden from every view, so the seeds on the outer one agree with
+      their votes by construction while the inner one's votes point inward.
    b. Propagation from the seeds along a minimum spanning tree of the neighbour graph (Hoppe et
       al., SIGGRAPH 1992; the seeds hang from a virtual root). Edge ``(i, j)`` with unit offset
       ``d`` costs ``1 - |n_i . n_j| + min(a, 2 - a)``, ``a = |n_i . d| + |n_j . d|``: cheap both
@@ -446,15 +449,21 @@ def layer_votes(points, normals, spacing, tree, noise: float = 0.0, cancel_poll:
                     np.where((above >= LAYER_MIN) & (below == 0), -1.0, 0.0))
 
 
-def _layer_seeds(g, normals, votes, seed) -> np.ndarray:
+def _layer_seeds(g, points, normals, votes, seed, spacing: float) -> np.ndarray:
     """Seeds (N,) extended by the layer votes where the views left points undecided.
 
     Layer points (``votes != 0``) joined by edges of the neighbour graph ``g`` with parallel normals
     (not around a sharp edge, onto another face) form regions; a region's votes are used when at
-    least :data:`LAYER_CHECKS` of its points were also seeded by the views and at least
-    :data:`LAYER_AGREEMENT` of those agree with their votes. A narrow gap
-    between two parts (its facing sides point into it, against the votes) is hidden from the views
-    and gets no seeds, so it keeps the propagated signs."""
+    least :data:`LAYER_CHECKS` of its points were also seeded by the views, at least
+    :data:`LAYER_AGREEMENT` of those agree with their votes, and at least :data:`LAYER_OPPOSED` of
+    them face a view-seeded point of the other face (:func:`_facing_seeds`): the views saw the
+    part from both sides, so it is a solid plate. A narrow gap between two parts (its facing sides
+    point into it, against the votes) is hidden from the views and gets no seeds; two misregistered
+    copies of one surface (a scan) are seen from one side only: the outer copy's seeds agree with
+    their votes, the hidden inner copy's votes point inward (77 to 90 % of them wrong on simulated
+    range scans, docs/real_scans.md). Both keep the propagated signs.
+
+    ``points`` (N, 3) and ``spacing`` (their median spacing) are in the same units."""
     layer = votes != 0
     both = layer & (seed != 0)
     if both.sum() < LAYER_CHECKS:  # no region can be trusted (smooth closed shapes, most inputs)
@@ -465,9 +474,24 @@ def _layer_seeds(g, normals, votes, seed) -> np.ndarray:
     n_regions, labels = _components(len(votes), g.row[inner], g.col[inner])
     checked = np.bincount(labels[both], minlength=n_regions)
     agreed = np.bincount(labels[both], weights=(seed[both] == votes[both]).astype(float), minlength=n_regions)
-    trusted = (checked >= LAYER_CHECKS) & (agreed >= LAYER_AGREEMENT * checked)
+    idx = np.flatnonzero(both)
+    facing = _facing_seeds(points[idx], normals[idx] * seed[idx, None], LAYER_RADIUS * spacing)
+    opposed = np.bincount(labels[idx], weights=facing.astype(float), minlength=n_regions)
+    trusted = (checked >= LAYER_CHECKS) & (agreed >= LAYER_AGREEMENT * checked) & (opposed >= LAYER_OPPOSED)
     use = layer & (seed == 0) & trusted[labels]
     return np.where(use, votes, seed)
+
+
+def _facing_seeds(points, oriented, radius: float) -> np.ndarray:
+    """Which of the seeded ``points`` (M, 3) have another within ``radius`` whose ``oriented``
+    normal (M, 3) points the opposite way (cosine below -0.5): bool (M,)."""
+    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
+    out = np.zeros(len(points), dtype=bool)
+    if len(pairs):
+        opp = pairs[np.sum(oriented[pairs[:, 0]] * oriented[pairs[:, 1]], axis=1) < -0.5]
+        out[opp[:, 0]] = True
+        out[opp[:, 1]] = True
+    return out
 
 
 def _seeded_propagation(g, points, normals, seed_sign, noise=None):
@@ -632,6 +656,7 @@ LAYER_OFFSET = 0.3  # offset along the normal, in spacings, that counts as the o
 LAYER_MIN = 2  # points of the other face needed
 LAYER_CHECKS = 3  # view-seeded points a layer region needs ...
 LAYER_AGREEMENT = 0.8  # ... and the share of them that must agree with its votes
+LAYER_OPPOSED = 3  # ... and how many of them must face a seeded point of the other face
 
 
 def median_spacing(points: np.ndarray, tree: Optional[cKDTree] = None, sample: int = 20000) -> float:
@@ -757,7 +782,7 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
         # surface). Their layer votes join the global fit only: as hard seeds of the spanning tree,
         # a few wrong ones (the facing sides of a narrow gap) would decide everything behind them.
         lv = layer_votes(p, nrm, spacing, tree, sides=sides)
-        seed = _layer_seeds(g, nrm, lv, seed)
+        seed = _layer_seeds(g, p, nrm, lv, seed, spacing)
     sign = _harmonic_signs(g, p, nrm, sign, seed, noise, cancel_poll)
     sign = _consensus(g, p, nrm, sign, votes, cancel_poll, noise=noise)
     if orientation == "outward":
