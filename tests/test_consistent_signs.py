@@ -143,7 +143,8 @@ def test_irregular_points_are_left_out_of_the_orientation(monkeypatch):
     # mixed pixels are left, a spacing or a few off the crown's surface. Oriented with them, 3.6 % of
     # the surface points' signs came out wrong (webbing between the crown's lobes, F-score 0.956);
     # oriented on the points with a regular neighbourhood and the rest signed by their neighbours,
-    # 1.9 % (F-score 0.976).
+    # 1.9 % (F-score 0.976). Since layer votes need seeds on both faces (a misregistered scan's
+    # hidden copy no longer votes): 2.6 % with them, 1.2 % without.
     from benchmarks.bench_range_scans import DEFAULT_SCANS
     from benchmarks.range_scans import range_scan
     from nkf_model.normals import estimate
@@ -168,4 +169,4 @@ def test_irregular_points_are_left_out_of_the_orientation(monkeypatch):
     regular = wrong()
     monkeypatch.setattr(estimate, "IRREGULAR_MIN_POINTS", 10**9)
     everything = wrong()
-    assert regular < 0.025 and everything > 0.03, (regular, everything)
+    assert regular < 0.02 and everything > 0.02, (regular, everything)
