@@ -169,6 +169,33 @@ def test_misregistered_copies_of_a_surface_are_no_thin_plate():
     assert agreement(e, n) > 0.99
 
 
+def _rotation(axis, angle):
+    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * k @ k
+
+
+def test_misregistered_scans_are_told_from_thin_parts_and_oriented_again():
+    # Four scans of a box, each turned by up to 4 degrees and shifted by 0.004: copies of one surface
+    # that cross each other, so their other layers lie outward about as often as inward. A thin plate
+    # (its other face always inward) and a clean box are no such thing.
+    rng = np.random.default_rng(0)
+    parts, normals = [], []
+    for s in range(4):
+        p, n = box_points(3000, seed=s)
+        r = _rotation(rng.normal(size=3), np.radians(4.0) * rng.uniform(0.5, 1.0))
+        parts.append(p @ r.T + rng.normal(scale=0.004, size=3))
+        normals.append(n @ r.T)
+    p, n = np.concatenate(parts), np.concatenate(normals)
+    e, info = estimate_normals(p)
+    assert info.misregistered
+    assert agreement(e, n) > 0.98  # 0.9844 oriented once, 0.9908 again
+    for p, n in (box_points(12000, seed=9), box_points(4000, size=(1.0, 1.0, 0.006), seed=2)):
+        e, info = estimate_normals(p)
+        assert not info.misregistered
+        assert agreement(e, n) > 0.97
+
+
 def test_viewpoint_hint_orients_an_open_sheet_towards_the_scanner():
     rng = np.random.default_rng(0)
     xy = rng.uniform(-1, 1, size=(3000, 2))
@@ -207,6 +234,7 @@ def test_reconstruct_estimates_missing_normals_and_says_so():
     assert m.stats["orientation"]["learned_check"] is True
     assert 0 <= m.stats["orientation"]["flipped_by_learned_check"] <= 15
     assert m.stats["orientation"]["flipped_by_tangent_planes"] == 0  # under 10,000 points: never runs
+    assert m.stats["orientation"]["misregistered"] is False  # one clean sampling of a sphere
     assert np.abs(np.linalg.norm(m.vertices, axis=1) - 1).max() < 0.03
     # normals_mode="estimate" ignores given normals (here deliberately wrong ones).
     m2 = nkf_model.reconstruct(p, -p, resolution=48, device="cpu", normals_mode="estimate")

@@ -386,6 +386,7 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
             "rule": normal_info.orientation, "pieces": normal_info.pieces, "decided_by_views": normal_info.seeded,
             "learned_check": normal_info.learned_check, "flipped_by_learned_check": normal_info.learned_flips,
             "flipped_by_tangent_planes": normal_info.consistent_flips,
+            "misregistered": normal_info.misregistered,
         },
         "feature_scale": feature_scale,
     }
