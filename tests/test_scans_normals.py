@@ -169,16 +169,12 @@ def test_misregistered_copies_of_a_surface_are_no_thin_plate():
     assert agreement(e, n) > 0.99
 
 
-def _rotation(axis, angle):
-    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * k @ k
-
-
 def test_misregistered_scans_are_told_from_thin_parts_and_oriented_again():
     # Four scans of a box, each turned by up to 4 degrees and shifted by 0.004: copies of one surface
     # that cross each other, so their other layers lie outward about as often as inward. A thin plate
     # (its other face always inward) and a clean box are no such thing.
+    from benchmarks.range_scans import _rotation  # the simulated scans' own misregistration turn
+
     rng = np.random.default_rng(0)
     parts, normals = [], []
     for s in range(4):
