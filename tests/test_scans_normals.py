@@ -192,6 +192,30 @@ def test_misregistered_scans_are_told_from_thin_parts_and_oriented_again():
         assert agreement(e, n) > 0.97
 
 
+def test_views_drawn_once_vote_as_a_fresh_drawing_at_every_noise_level():
+    # The second orientation of a misregistered cloud reuses the first one's depth buffers; the
+    # votes must be those of drawing the views again with the wider tolerance. A box with a lid
+    # floating just above it: the lid hides the top from some views within one tolerance, not the other.
+    from nkf_model.normals.estimate import fibonacci_directions, median_spacing, view_depths, visibility_votes
+
+    p, n = box_points(4000, seed=3)
+    lid = p[:, 2] > 0.45
+    p = np.concatenate([p, p[lid] + [0.0, 0.0, 0.02]])
+    n = np.concatenate([n, n[lid]])
+    spacing = median_spacing(p)
+    dirs = -fibonacci_directions(16)
+    drawn = list(view_depths(p, n, spacing, directions=dirs))
+    layers = (p[:, 0] > 0.3, p[:, 1] > 0.3)
+    seen = []
+    for noise in (0.0, 0.01, 0.04):
+        fresh = visibility_votes(p, n, spacing, directions=dirs, noise=noise, layers=layers)
+        again = visibility_votes(p, n, spacing, noise=noise, layers=layers, depths=drawn)
+        np.testing.assert_array_equal(fresh[0], again[0])
+        np.testing.assert_array_equal(fresh[1], again[1])
+        seen.append(int((fresh[1] > 0).sum()))
+    assert seen[0] < seen[1] < seen[2], seen  # the tolerance matters here
+
+
 def test_viewpoint_hint_orients_an_open_sheet_towards_the_scanner():
     rng = np.random.default_rng(0)
     xy = rng.uniform(-1, 1, size=(3000, 2))

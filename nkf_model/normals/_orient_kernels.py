@@ -9,8 +9,9 @@ import numpy as np
 
 
 @nb.njit(nogil=True, cache=True)
-def zbuffer_visible(u, v, w, su, sv, radius, use, pixel, lo, hi, tol):  # pragma: no cover - compiled
-    """Visibility of points drawn as tangent-plane discs into a depth buffer.
+def zbuffer_margin(u, v, w, su, sv, radius, use, pixel, lo, hi):  # pragma: no cover - compiled
+    """How far behind the front each point lies, its points drawn as tangent-plane discs into a depth
+    buffer.
 
     Parameters
     ----------
@@ -26,12 +27,13 @@ def zbuffer_visible(u, v, w, su, sv, radius, use, pixel, lo, hi, tol):  # pragma
         Points to draw and test (others are reported invisible).
     pixel, lo, hi : float
         Pixel size and the image's extent ``[lo, hi]`` along u and v.
-    tol : float
-        A point is visible when its depth is at most the buffer's depth at its pixel plus ``tol``.
 
     Returns
     -------
-    (N,) bool
+    (N,) float64
+        Each point's depth (its plane's, at its pixel's centre) minus the buffer's depth there: a
+        point is visible with a depth tolerance ``tol`` where this is at most ``tol``. Infinite for
+        points not used or outside the image.
     """
     n = u.shape[0]
     size = int(math.ceil((hi - lo) / pixel)) + 1
@@ -54,7 +56,7 @@ def zbuffer_visible(u, v, w, su, sv, radius, use, pixel, lo, hi, tol):  # pragma
                 z = w[i] + su[i] * du + sv[i] * dv
                 if z < zbuf[a, b]:
                     zbuf[a, b] = z
-    out = np.zeros(n, dtype=np.bool_)
+    out = np.full(n, np.inf)
     for i in range(n):
         if not use[i]:
             continue
@@ -64,5 +66,5 @@ def zbuffer_visible(u, v, w, su, sv, radius, use, pixel, lo, hi, tol):  # pragma
             du = lo + (a + 0.5) * pixel - u[i]
             dv = lo + (b + 0.5) * pixel - v[i]
             z = w[i] + su[i] * du + sv[i] * dv
-            out[i] = z <= zbuf[a, b] + tol
+            out[i] = z - zbuf[a, b]
     return out

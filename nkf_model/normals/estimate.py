@@ -57,9 +57,10 @@ Two steps, both on the CPU with SciPy:
 Noise: the noise level of the cloud (the flattest quarter's plane-fit residual) widens the depth
 tolerance of the views and keeps offsets along the normals that are within the noise from being
 read as "across a thin plate". Overlapping scans that do not register exactly are layered all over,
-copies of one surface a fraction of a spacing apart on either side of each other; where a cloud reads
-so (:func:`layer_balance`), it is oriented again with twice the noise level, so that those offsets are
-noise, not thin parts. Large clouds are voted on a random subset of 40,000 points.
+copies of one surface a fraction of a spacing apart on either side of each other; where the signs of
+the propagation read so (:func:`layer_balance`), the orientation stops there and starts again with
+twice the noise level, so that those offsets are noise, not thin parts (the views' depth buffers,
+which do not depend on the noise level, are drawn once). Large clouds are voted on a random subset of 40,000 points.
 
 All positions are in the caller's units; the functions are scale-free (neighbour offsets are
 normalised).
@@ -268,27 +269,51 @@ def _basis(d):
 
 
 def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=None, noise: float = 0.0,
-                     layers=None, cancel_poll: CancelPoll = None):
+                     layers=None, cancel_poll: CancelPoll = None, depths=None):
     """Signed votes (N,) for each normal from the views in which its point is visible.
 
     A view is an orthographic projection along one of ``directions`` (unit vectors pointing from
     the viewer into the scene), or a pinhole camera at one of ``viewpoints`` (six 90-degree faces of
     a cube map). Each point is drawn as a disc of radius ``3 * spacing`` in its tangent plane into a
-    depth buffer; a point is visible when nothing lies more than ``spacing / 2`` in front of it.
+    depth buffer; a point is visible when nothing lies more than ``spacing / 2`` (plus
+    :data:`TOL_NOISE` noise levels) in front of it.
     A visible point whose normal makes an angle under 78 degrees with the line of sight votes
     ``+|cos|`` if its normal faces the viewer and ``-|cos|`` if not; the votes are summed.
     ``layers``: two (N,) bool arrays, whether another layer lies on the side each normal points to
     and on the other side (:func:`layer_sides`); a point with one on its viewer's side is hidden
-    from that view, however close the layers are. Returns votes (N,) and their weights (N,).
+    from that view, however close the layers are. ``depths``: :func:`view_depths` of the same
+    points and views, as a list (one drawing for several noise levels). Returns votes (N,) and
+    their weights (N,).
     """
+    if depths is None:
+        depths = view_depths(points, normals, spacing, directions=directions, viewpoints=viewpoints,
+                             cancel_poll=cancel_poll)
+    n = len(points)
+    votes = np.zeros(n)
+    weight = np.zeros(n)
+    tol = 0.5 * spacing + TOL_NOISE * noise
+    for margin, cosang in depths:
+        use = (margin <= tol) & (np.abs(cosang) > 0.2)
+        if layers is not None:
+            # Another layer between the point and the viewer hides it, however close.
+            use &= ~np.where(cosang < 0, layers[0], layers[1])
+        votes[use] -= cosang[use]  # the normal faces the viewer when it points against the ray
+        weight[use] += np.abs(cosang[use])
+    return votes, weight
+
+
+def view_depths(points, normals, spacing, *, directions=None, viewpoints=None, cancel_poll: CancelPoll = None):
+    """Each view's depth buffer, read at every point: ``(margin (N,), cos (N,))`` per view, one view
+    at a time (a generator), for :func:`visibility_votes` (views and drawing as there).
+
+    ``margin``: how far the point lies behind the nearest drawn surface at its pixel, in the units of
+    ``points`` (infinite outside the image); ``cos``: the cosine between its normal and the line of
+    sight. Neither depends on the noise level, so one drawing serves every depth tolerance."""
     from . import _orient_kernels as ok
 
     p = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
-    votes = np.zeros(len(p))
-    weight = np.zeros(len(p))
     radius = SPLAT_RADIUS * spacing
-    tol = 0.5 * spacing + TOL_NOISE * noise
     pixel = 0.5 * spacing
     views = []  # (origin (3,), a, b, d, perspective)
     centre = 0.5 * (p.min(axis=0) + p.max(axis=0))
@@ -325,22 +350,16 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
             # Angular disc radius and pixel size at each point's distance.
             wmin = float(w[inside].min()) if inside.any() else 1.0
             pix = pixel / max(float(np.median(w[inside])) if inside.any() else 1.0, wmin)
-            vis = ok.zbuffer_visible(u, v, dist, np.zeros_like(u), np.zeros_like(u), radius / np.maximum(w, 1e-300),
-                                     inside, pix, -1.0, 1.0, tol)
+            margin = ok.zbuffer_margin(u, v, dist, np.zeros_like(u), np.zeros_like(u), radius / np.maximum(w, 1e-300),
+                                       inside, pix, -1.0, 1.0)
         else:
             cosang = nd
             slope_u = np.clip(-na / np.where(np.abs(nd) > 1e-6, nd, 1e-6), -3.0, 3.0)
             slope_v = np.clip(-nb_ / np.where(np.abs(nd) > 1e-6, nd, 1e-6), -3.0, 3.0)
             half = float(max(np.abs(u).max(), np.abs(v).max())) + radius
-            vis = ok.zbuffer_visible(u, v, w, slope_u, slope_v, np.full(len(p), radius),
-                                     np.ones(len(p), dtype=np.bool_), pixel, -half, half, tol)
-        use = vis & (np.abs(cosang) > 0.2)
-        if layers is not None:
-            # Another layer between the point and the viewer hides it, however close.
-            use &= ~np.where(cosang < 0, layers[0], layers[1])
-        votes[use] -= cosang[use]  # the normal faces the viewer when it points against the ray
-        weight[use] += np.abs(cosang[use])
-    return votes, weight
+            margin = ok.zbuffer_margin(u, v, w, slope_u, slope_v, np.full(len(p), radius),
+                                       np.ones(len(p), dtype=np.bool_), pixel, -half, half)
+        yield margin, cosang
 
 
 CONSENSUS_ROUNDS = 30
@@ -664,10 +683,10 @@ LAYER_MIN = 2  # points of the other face needed
 LAYER_CHECKS = 3  # view-seeded points a layer region needs ...
 LAYER_AGREEMENT = 0.8  # ... and the share of them that must agree with its votes
 LAYER_OPPOSED = 3  # ... and how many of them must face a seeded point of the other face
-# Misregistered overlapping scans (layer_balance), chosen on the val meshes' all-round scans and clean
-# samples (docs/real_scans.md).
+# Misregistered overlapping scans (layer_balance on the propagation's signs), chosen on the val meshes'
+# all-round scans and clean samples (docs/real_scans.md).
 MISREGISTERED_LAYERS = 0.7  # share of points with another layer ...
-MISREGISTERED_BALANCE = 0.5  # ... and outward-only layer points at least this share of inward-only ones
+MISREGISTERED_BALANCE = 0.45  # ... and outward-only layer points more than this share of inward-only ones
 MISREGISTERED_NOISE = 2.0  # the noise level of the second orientation, in first noise levels
 
 
@@ -746,10 +765,17 @@ def _checked(sign, state, info, learned: bool, cancel_poll: CancelPoll):
     return state.normals * sign[:, None], info
 
 
-def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residual, cancel_poll):
+def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residual, cancel_poll,
+            stop_if_misregistered: bool = False, memo: Optional[dict] = None):
     """Signs (N,), the :class:`~nkf_model.normals.sign_check.OrientationState` behind them and the
     :class:`OrientationInfo`: :func:`orient_normals` without the learned check (also used to
-    train it)."""
+    train it).
+
+    ``stop_if_misregistered``: return ``None`` as soon as the signs of the propagation read as
+    misregistered overlapping scans (:func:`misregistered`), before the costlier global steps, so that
+    the caller can orient again with a wider noise level. ``memo``: a dict that keeps what does not
+    depend on the noise level (the views' depth buffers, "outward" and "up") for a second call on the
+    same points and normals."""
     p = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
     vp = check_viewpoints(viewpoints)
@@ -772,9 +798,14 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     else:
         sides = layer_sides(p, nrm, spacing, tree, noise_level, cancel_poll)
         layers = (sides[0][sub] > 0, sides[1][sub] > 0)
-        dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
-        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, directions=-dirs, noise=noise_level,
-                                  layers=layers, cancel_poll=cancel_poll)
+        depths = None if memo is None else memo.get("depths")
+        if depths is None:
+            dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
+            depths = view_depths(p[sub], nrm[sub], view_spacing, directions=-dirs, cancel_poll=cancel_poll)
+            if memo is not None:  # kept: about 1 MB per 1,000 points drawn
+                depths = memo["depths"] = list(depths)
+        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, noise=noise_level, layers=layers,
+                                  cancel_poll=cancel_poll, depths=depths)
     votes = np.zeros(n)
     weight = np.zeros(n)
     votes[sub], weight[sub] = sv, sw
@@ -789,6 +820,8 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     view_seed = seed
     sign, pieces = _seeded_propagation(g, p, nrm, seed, noise)
     sign = _flip_pieces(g, p, nrm, sign, seed, cancel_poll, noise=noise)
+    if stop_if_misregistered and orientation != "viewpoint" and misregistered(sides[0], sides[1], sign):
+        return None
     if orientation != "viewpoint":
         # Thin parts with both faces sampled belong to objects (a scanner sees one side of each
         # surface). Their layer votes join the global fit only: as hard seeds of the spanning tree,
@@ -931,18 +964,28 @@ def _estimate(points, k: int, orientation: str, viewpoints, cancel_poll: CancelP
     # One noise level for the whole cloud, from its flattest quarter: residuals also grow with
     # curvature and at sharp edges, where offsets along the normals are geometry, not noise.
     noise = np.full(len(p), float(np.quantile(residual, NOISE_QUANTILE)))
+    memo = {}
+    first = _orient(p, nrm, orientation=orientation, viewpoints=viewpoints, k=DEFAULT_GRAPH_K, tree=tree,
+                    noise=noise, residual=residual, cancel_poll=cancel_poll, stop_if_misregistered=True,
+                    memo=memo)
+    if first is not None:
+        return first
+    # Overlapping scans that do not register exactly: the offsets between the copies of one surface
+    # are no thin parts. Orient again with them inside the noise level (the views drawn once).
     sign, state, info = _orient(p, nrm, orientation=orientation, viewpoints=viewpoints, k=DEFAULT_GRAPH_K,
-                                tree=tree, noise=noise, residual=residual, cancel_poll=cancel_poll)
-    if info.orientation != "viewpoint":
-        share, outward, inward = layer_balance(state.above, state.below, sign)
-        if share > MISREGISTERED_LAYERS and outward > MISREGISTERED_BALANCE * inward > 0:
-            # Overlapping scans that do not register exactly: the offsets between the copies of one
-            # surface are no thin parts. Orient again with them inside the noise level.
-            sign, state, info = _orient(p, nrm, orientation=orientation, viewpoints=viewpoints, k=DEFAULT_GRAPH_K,
-                                        tree=tree, noise=MISREGISTERED_NOISE * noise, residual=residual,
-                                        cancel_poll=cancel_poll)
-            info.misregistered = True
+                                tree=tree, noise=MISREGISTERED_NOISE * noise, residual=residual,
+                                cancel_poll=cancel_poll, memo=memo)
+    info.misregistered = True
     return sign, state, info
+
+
+def misregistered(above, below, sign) -> bool:
+    """Whether a cloud reads as overlapping scans that do not register exactly: over
+    :data:`MISREGISTERED_LAYERS` of its points have another layer, and the layer points whose other
+    layer lies only outward number over :data:`MISREGISTERED_BALANCE` of those whose other layer lies
+    only inward (:func:`layer_balance`; arguments as there)."""
+    share, outward, inward = layer_balance(above, below, sign)
+    return share > MISREGISTERED_LAYERS and outward > MISREGISTERED_BALANCE * inward > 0
 
 
 def layer_balance(above, below, sign) -> tuple[float, float, float]:
@@ -953,11 +996,13 @@ def layer_balance(above, below, sign) -> tuple[float, float, float]:
     ``above``, ``below`` (N,): :func:`layer_sides` of the unoriented normals; ``sign`` (N,) +1/-1 the
     orientation's signs. The other face of a solid part lies inward (the far side of a narrow gap
     outward, less often); two misregistered copies of one surface lie on either side of each other as
-    often, since they swap sides where they cross. With the orientation's own signs, clean 10,000-point
-    samples of the 52 `val` meshes: where over 70 % are layer points, outward is at most 0.07 of inward
-    (rough meshes such as bullet3__base_link); all-round simulated scans (misregistration 0.002 of the
-    diagonal): 61 to 97 % layer points, outward 0.03 (base_link again) to 1.6 of inward, 45 of 52 over
-    both thresholds (docs/real_scans.md).
+    often, since they swap sides where they cross. With the signs of the propagation (what
+    :func:`_orient` decides on), clean 10,000-point samples of the 52 `val` meshes: where over 70 % are
+    layer points, outward is at most 0.24 of inward (rough meshes: PineTreeTall 0.24, textured-0008192
+    0.09, base_link 0.03); all-round simulated scans (misregistration 0.002 of the diagonal): 61 to
+    97 % layer points, outward 0.04 (base_link again) to 1.47 of inward, 46 of 52 over both thresholds
+    (docs/real_scans.md). The finished orientation reads outward layers more often (on the 45 scans its
+    signs flagged at 0.5, a median 1 / 0.86 times as often).
     """
     up = np.where(sign > 0, above, below)
     down = np.where(sign > 0, below, above)
