@@ -60,7 +60,8 @@ read as "across a thin plate". Overlapping scans that do not register exactly ar
 copies of one surface a fraction of a spacing apart on either side of each other; where the signs of
 the propagation read so (:func:`layer_balance`), the orientation stops there and starts again with
 twice the noise level, so that those offsets are noise, not thin parts (the views' depth buffers,
-which do not depend on the noise level, are drawn once). Large clouds are voted on a random subset of 40,000 points.
+which do not depend on the noise level, are drawn once). Large clouds are voted on a random subset
+of 40,000 points.
 
 All positions are in the caller's units; the functions are scale-free (neighbour offsets are
 normalised).
