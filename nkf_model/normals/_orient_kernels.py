@@ -24,7 +24,7 @@ def zbuffer_margin(u, v, w, su, sv, radius, use, pixel, lo, hi):  # pragma: no c
     radius : (N,) float64
         Disc radius of each point in image units.
     use : (N,) bool
-        Points to draw and test (others are reported invisible).
+        Points to draw and test (the others get an infinite margin).
     pixel, lo, hi : float
         Pixel size and the image's extent ``[lo, hi]`` along u and v.
 
