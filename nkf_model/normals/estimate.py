@@ -275,9 +275,9 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
 
     A view is an orthographic projection along one of ``directions`` (unit vectors pointing from
     the viewer into the scene), or a pinhole camera at one of ``viewpoints`` (six 90-degree faces of
-    a cube map). Each point is drawn as a disc of radius ``3 * spacing`` in its tangent plane into a
-    depth buffer; a point is visible when nothing lies more than ``spacing / 2`` (plus
-    :data:`TOL_NOISE` noise levels) in front of it.
+    a cube map). Each point is drawn as a disc in its tangent plane (radius: :func:`splat_radii`, 1
+    to 3 spacings) into a depth buffer; a point is visible when nothing lies more than
+    ``spacing / 2`` (plus :data:`TOL_NOISE` noise levels) in front of it.
     A visible point whose normal makes an angle under 78 degrees with the line of sight votes
     ``+|cos|`` if its normal faces the viewer and ``-|cos|`` if not; the votes are summed.
     ``layers``: two (N,) bool arrays, whether another layer lies on the side each normal points to
@@ -314,7 +314,7 @@ def view_depths(points, normals, spacing, *, directions=None, viewpoints=None, c
 
     p = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
-    radius = SPLAT_RADIUS * spacing
+    radius = splat_radii(p, spacing)
     pixel = 0.5 * spacing
     views = []  # (origin (3,), a, b, d, perspective)
     centre = 0.5 * (p.min(axis=0) + p.max(axis=0))
@@ -357,10 +357,24 @@ def view_depths(points, normals, spacing, *, directions=None, viewpoints=None, c
             cosang = nd
             slope_u = np.clip(-na / np.where(np.abs(nd) > 1e-6, nd, 1e-6), -3.0, 3.0)
             slope_v = np.clip(-nb_ / np.where(np.abs(nd) > 1e-6, nd, 1e-6), -3.0, 3.0)
-            half = float(max(np.abs(u).max(), np.abs(v).max())) + radius
-            margin = ok.zbuffer_margin(u, v, w, slope_u, slope_v, np.full(len(p), radius),
+            half = float(max(np.abs(u).max(), np.abs(v).max()) + radius.max())
+            margin = ok.zbuffer_margin(u, v, w, slope_u, slope_v, radius,
                                        np.ones(len(p), dtype=np.bool_), pixel, -half, half)
         yield margin, cosang
+
+
+def splat_radii(points: np.ndarray, spacing: float) -> np.ndarray:
+    """Disc radius (N,) of each point in the visibility views, in the units of ``points``.
+
+    Each disc reaches the point's :data:`SPLAT_NEIGHBOUR`-th nearest neighbour, between
+    :data:`SPLAT_MIN` and :data:`SPLAT_RADIUS` spacings: wide enough that the discs close the gaps
+    between the points drawn (a view must not see through a surface), no wider, since a disc in the
+    tangent plane stands off a curved surface (a thin rod) and hides the points next to it."""
+    n = len(points)
+    if SPLAT_NEIGHBOUR is None or n <= SPLAT_NEIGHBOUR:
+        return np.full(n, SPLAT_RADIUS * spacing)
+    d, _ = cKDTree(points).query(points, k=SPLAT_NEIGHBOUR + 1)
+    return np.clip(SPLAT_REACH * d[:, -1], SPLAT_MIN * spacing, SPLAT_RADIUS * spacing)
 
 
 CONSENSUS_ROUNDS = 30
@@ -669,7 +683,10 @@ TOL_NOISE = 1.5  # depth tolerance of the views, in noise levels (on top of half
 HARMONIC_COST = 0.1  # edges cheaper than this join the global sign fit (_harmonic_signs)
 HARMONIC_SEED = 0.01  # weight of a seed's sign in that fit, against 1 for a confident edge
 NOISE_QUANTILE = 0.25  # the noise level is this quantile of the points' plane-fit residuals
-SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
+SPLAT_RADIUS = 3.0  # largest disc radius of a point in the visibility views, in point spacings
+SPLAT_MIN = 1.0  # smallest, in point spacings
+SPLAT_NEIGHBOUR = 6  # each disc reaches this neighbour (None: every disc SPLAT_RADIUS)
+SPLAT_REACH = 1.0  # ... times its distance
 VIEWPOINT_VOTE_WEIGHT = 0.25
 # Winding-number refinement (_winding_signs), chosen on the val meshes (docs/scans.md).
 WINDING_ROUNDS = 10
