@@ -116,17 +116,14 @@ def _corpus_samples(name, n):
     return corpus.sample_input(v, f, n, 0.0, corpus.stable_seed("input", e.name, n, 0.0))
 
 
-def test_the_check_asks_the_rest_of_a_closed_object(monkeypatch):
+def test_the_check_asks_the_rest_of_a_closed_object():
     # 10,000 points of quaternius__Windmill (thin blades and struts), as the normal-estimation
     # benchmark samples them: the propagation flips 29 % of the points and passes the relation tests
     # (gain 6 %, 0.21 per share flipped), but it runs along the thin parts and leaves 33 % of the
     # signs wrong instead of 11 %. The winding number of the points it does not flip backs their old
     # signs at 35 % of them (consistent.REST_SUPPORT: at most 20 %), so the orientation's signs stay.
-    from nkf_model.normals import consistent, estimate, sign_check
+    from nkf_model.normals import consistent, sign_check
 
-    # The orientation state as views of equal discs left it (estimate.SPLAT_NEIGHBOUR = None, the
-    # rule before the discs followed the neighbours): the case the check must decide.
-    monkeypatch.setattr(estimate, "SPLAT_NEIGHBOUR", None)
     p, n = _corpus_samples("quaternius__Windmill", 10_000)
     _, state = _state(p)
     sign, _ = sign_check.flip_wrong(state)  # as estimate_normals: the learned check comes first
@@ -148,9 +145,7 @@ def test_irregular_points_are_left_out_of_the_orientation(monkeypatch):
     # oriented on the points with a regular neighbourhood and the rest signed by their neighbours,
     # 1.9 % (F-score 0.976). Since layer votes need seeds on both faces (a misregistered scan's
     # hidden copy no longer votes): 2.6 % with them, 1.2 % without. Measured on the first orientation:
-    # the scan reads as misregistered and is oriented again, which leaves 0.47 % and 0.42 %. Views
-    # whose discs follow the neighbours (estimate.SPLAT_NEIGHBOUR) see the crown's thin parts and
-    # leave 0.73 % and 0.86 %; the test keeps the equal discs, under which the filter was decided.
+    # the scan reads as misregistered and is oriented again, which leaves 0.47 % and 0.42 %.
     from benchmarks.bench_range_scans import DEFAULT_SCANS
     from benchmarks.range_scans import range_scan
     from nkf_model.normals import estimate
@@ -169,7 +164,6 @@ def test_irregular_points_are_left_out_of_the_orientation(monkeypatch):
     x, surface, truth = x[keep], ~sc.outlier[keep], sc.true_normals[keep]
 
     monkeypatch.setattr(estimate, "MISREGISTERED_LAYERS", 2.0)  # no second orientation
-    monkeypatch.setattr(estimate, "SPLAT_NEIGHBOUR", None)
 
     def wrong():
         nrm, _ = estimate.estimate_normals(x)

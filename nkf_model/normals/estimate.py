@@ -59,9 +59,9 @@ tolerance of the views and keeps offsets along the normals that are within the n
 read as "across a thin plate". Overlapping scans that do not register exactly are layered all over,
 copies of one surface a fraction of a spacing apart on either side of each other; where the signs of
 the propagation read so (:func:`layer_balance`), the orientation stops there and starts again with
-twice the noise level, so that those offsets are noise, not thin parts (the views' depth buffers,
-which do not depend on the noise level, are drawn once). Large clouds are voted on a random subset
-of 40,000 points.
+twice the noise level, so that those offsets are noise, not thin parts, and with views whose discs
+reach only each point's neighbours (:func:`splat_radii`: dense range images need no wider ones, and
+wider ones hide thin rods). Large clouds are voted on a random subset of 40,000 points.
 
 All positions are in the caller's units; the functions are scale-free (neighbour offsets are
 normalised).
@@ -270,14 +270,14 @@ def _basis(d):
 
 
 def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=None, noise: float = 0.0,
-                     layers=None, cancel_poll: CancelPoll = None, depths=None):
+                     layers=None, cancel_poll: CancelPoll = None, depths=None, follow_neighbours: bool = False):
     """Signed votes (N,) for each normal from the views in which its point is visible.
 
     A view is an orthographic projection along one of ``directions`` (unit vectors pointing from
     the viewer into the scene), or a pinhole camera at one of ``viewpoints`` (six 90-degree faces of
-    a cube map). Each point is drawn as a disc in its tangent plane (radius: :func:`splat_radii`, 1
-    to 3 spacings) into a depth buffer; a point is visible when nothing lies more than
-    ``spacing / 2`` (plus :data:`TOL_NOISE` noise levels) in front of it.
+    a cube map). Each point is drawn as a disc in its tangent plane (radius: :func:`splat_radii`,
+    3 spacings, or with ``follow_neighbours`` 1 to 3) into a depth buffer; a point is visible when
+    nothing lies more than ``spacing / 2`` (plus :data:`TOL_NOISE` noise levels) in front of it.
     A visible point whose normal makes an angle under 78 degrees with the line of sight votes
     ``+|cos|`` if its normal faces the viewer and ``-|cos|`` if not; the votes are summed.
     ``layers``: two (N,) bool arrays, whether another layer lies on the side each normal points to
@@ -288,7 +288,7 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
     """
     if depths is None:
         depths = view_depths(points, normals, spacing, directions=directions, viewpoints=viewpoints,
-                             cancel_poll=cancel_poll)
+                             cancel_poll=cancel_poll, follow_neighbours=follow_neighbours)
     n = len(points)
     votes = np.zeros(n)
     weight = np.zeros(n)
@@ -303,18 +303,20 @@ def visibility_votes(points, normals, spacing, *, directions=None, viewpoints=No
     return votes, weight
 
 
-def view_depths(points, normals, spacing, *, directions=None, viewpoints=None, cancel_poll: CancelPoll = None):
+def view_depths(points, normals, spacing, *, directions=None, viewpoints=None, cancel_poll: CancelPoll = None,
+                follow_neighbours: bool = False):
     """Each view's depth buffer, read at every point: ``(margin (N,), cos (N,))`` per view, one view
     at a time (a generator), for :func:`visibility_votes` (views and drawing as there).
 
     ``margin``: how far the point lies behind the nearest drawn surface at its pixel, in the units of
     ``points`` (infinite outside the image); ``cos``: the cosine between its normal and the line of
-    sight. Neither depends on the noise level, so one drawing serves every depth tolerance."""
+    sight. Neither depends on the noise level, so one drawing serves every depth tolerance.
+    ``follow_neighbours``: discs as :func:`splat_radii` draws them for misregistered scans."""
     from . import _orient_kernels as ok
 
     p = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
-    radius = splat_radii(p, spacing)
+    radius = splat_radii(p, spacing, follow_neighbours)
     pixel = 0.5 * spacing
     views = []  # (origin (3,), a, b, d, perspective)
     centre = 0.5 * (p.min(axis=0) + p.max(axis=0))
@@ -363,18 +365,21 @@ def view_depths(points, normals, spacing, *, directions=None, viewpoints=None, c
         yield margin, cosang
 
 
-def splat_radii(points: np.ndarray, spacing: float) -> np.ndarray:
+def splat_radii(points: np.ndarray, spacing: float, follow_neighbours: bool = False) -> np.ndarray:
     """Disc radius (N,) of each point in the visibility views, in the units of ``points``.
 
-    Each disc reaches the point's :data:`SPLAT_NEIGHBOUR`-th nearest neighbour, between
-    :data:`SPLAT_MIN` and :data:`SPLAT_RADIUS` spacings: wide enough that the discs close the gaps
-    between the points drawn (a view must not see through a surface), no wider, since a disc in the
-    tangent plane stands off a curved surface (a thin rod) and hides the points next to it."""
+    :data:`SPLAT_RADIUS` spacings; with ``follow_neighbours`` each disc reaches only the point's
+    :data:`SPLAT_NEIGHBOUR`-th nearest neighbour (from :data:`SPLAT_MIN` to :data:`SPLAT_RADIUS`
+    spacings): wide enough to close the gaps between dense points, no wider, since a disc in the
+    tangent plane stands off a curved surface (by r^2 / 2R) and on a rod a few spacings across hides
+    the points next to it from every view. Used for clouds read as misregistered scans
+    (:func:`misregistered`); on clean 10,000-point samples it cost the normal gate (docs/real_scans.md).
+    """
     n = len(points)
-    if SPLAT_NEIGHBOUR is None or n <= SPLAT_NEIGHBOUR:
+    if not follow_neighbours or n <= SPLAT_NEIGHBOUR:
         return np.full(n, SPLAT_RADIUS * spacing)
     d, _ = cKDTree(points).query(points, k=SPLAT_NEIGHBOUR + 1)
-    return np.clip(SPLAT_REACH * d[:, -1], SPLAT_MIN * spacing, SPLAT_RADIUS * spacing)
+    return np.clip(d[:, -1], SPLAT_MIN * spacing, SPLAT_RADIUS * spacing)
 
 
 CONSENSUS_ROUNDS = 30
@@ -683,10 +688,9 @@ TOL_NOISE = 1.5  # depth tolerance of the views, in noise levels (on top of half
 HARMONIC_COST = 0.1  # edges cheaper than this join the global sign fit (_harmonic_signs)
 HARMONIC_SEED = 0.01  # weight of a seed's sign in that fit, against 1 for a confident edge
 NOISE_QUANTILE = 0.25  # the noise level is this quantile of the points' plane-fit residuals
-SPLAT_RADIUS = 3.0  # largest disc radius of a point in the visibility views, in point spacings
-SPLAT_MIN = 1.0  # smallest, in point spacings
-SPLAT_NEIGHBOUR = 6  # each disc reaches this neighbour (None: every disc SPLAT_RADIUS)
-SPLAT_REACH = 1.0  # ... times its distance
+SPLAT_RADIUS = 3.0  # disc radius of each point in the visibility views, in point spacings
+SPLAT_NEIGHBOUR = 6  # misregistered scans: each disc reaches this neighbour ...
+SPLAT_MIN = 1.0  # ... with a radius of at least this many point spacings
 VIEWPOINT_VOTE_WEIGHT = 0.25
 # Winding-number refinement (_winding_signs), chosen on the val meshes (docs/scans.md).
 WINDING_ROUNDS = 10
@@ -784,7 +788,7 @@ def _checked(sign, state, info, learned: bool, cancel_poll: CancelPoll):
 
 
 def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residual, cancel_poll,
-            stop_if_misregistered: bool = False, memo: Optional[dict] = None):
+            stop_if_misregistered: bool = False, memo: Optional[dict] = None, follow_neighbours: bool = False):
     """Signs (N,), the :class:`~nkf_model.normals.sign_check.OrientationState` behind them and the
     :class:`OrientationInfo`: :func:`orient_normals` without the learned check (also used to
     train it).
@@ -793,7 +797,7 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     misregistered overlapping scans (:func:`misregistered`), before the costlier global steps, so that
     the caller can orient again with a wider noise level. ``memo``: a dict that keeps what does not
     depend on the noise level (the views' depth buffers, "outward" and "up") for a second call on the
-    same points and normals."""
+    same points and normals. ``follow_neighbours``: the views' discs (:func:`splat_radii`)."""
     p = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
     vp = check_viewpoints(viewpoints)
@@ -816,12 +820,14 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     else:
         sides = layer_sides(p, nrm, spacing, tree, noise_level, cancel_poll)
         layers = (sides[0][sub] > 0, sides[1][sub] > 0)
-        depths = None if memo is None else memo.get("depths")
+        key = ("depths", follow_neighbours)
+        depths = None if memo is None else memo.get(key)
         if depths is None:
             dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
-            depths = view_depths(p[sub], nrm[sub], view_spacing, directions=-dirs, cancel_poll=cancel_poll)
+            depths = view_depths(p[sub], nrm[sub], view_spacing, directions=-dirs, cancel_poll=cancel_poll,
+                                 follow_neighbours=follow_neighbours)
             if memo is not None:  # kept: about 1 MB per 1,000 points drawn
-                depths = memo["depths"] = list(depths)
+                depths = memo[key] = list(depths)
         sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, noise=noise_level, layers=layers,
                                   cancel_poll=cancel_poll, depths=depths)
     votes = np.zeros(n)
@@ -982,17 +988,16 @@ def _estimate(points, k: int, orientation: str, viewpoints, cancel_poll: CancelP
     # One noise level for the whole cloud, from its flattest quarter: residuals also grow with
     # curvature and at sharp edges, where offsets along the normals are geometry, not noise.
     noise = np.full(len(p), float(np.quantile(residual, NOISE_QUANTILE)))
-    memo = {}
     first = _orient(p, nrm, orientation=orientation, viewpoints=viewpoints, k=DEFAULT_GRAPH_K, tree=tree,
-                    noise=noise, residual=residual, cancel_poll=cancel_poll, stop_if_misregistered=True,
-                    memo=memo)
+                    noise=noise, residual=residual, cancel_poll=cancel_poll, stop_if_misregistered=True)
     if first is not None:
         return first
     # Overlapping scans that do not register exactly: the offsets between the copies of one surface
-    # are no thin parts. Orient again with them inside the noise level (the views drawn once).
+    # are no thin parts. Orient again with them inside the noise level, and views whose discs follow
+    # the dense range images' neighbours (thin rods stay visible).
     sign, state, info = _orient(p, nrm, orientation=orientation, viewpoints=viewpoints, k=DEFAULT_GRAPH_K,
                                 tree=tree, noise=MISREGISTERED_NOISE * noise, residual=residual,
-                                cancel_poll=cancel_poll, memo=memo)
+                                cancel_poll=cancel_poll, follow_neighbours=True)
     info.misregistered = True
     return sign, state, info
 
