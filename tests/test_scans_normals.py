@@ -383,4 +383,3 @@ def test_thin_rods_are_not_hidden_by_their_own_discs():
     seed = seeds(*_rod_votes(True))
     assert (seed > 0).mean() > 0.9, (seed > 0).mean()
     assert not (seed < 0).any()
-
