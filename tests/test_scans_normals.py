@@ -193,8 +193,8 @@ def test_misregistered_scans_are_told_from_thin_parts_and_oriented_again():
 
 
 def test_views_drawn_once_vote_as_a_fresh_drawing_at_every_noise_level():
-    # The second orientation of a misregistered cloud reuses the first one's depth buffers; the
-    # votes must be those of drawing the views again with the wider tolerance. A box with a lid
+    # Depth buffers drawn once (view_depths) and read with several tolerances must vote as drawing
+    # the views again with each tolerance. A box with a lid
     # floating just above it: the lid hides the top from some views within one tolerance, not the other.
     from nkf_model.normals.estimate import fibonacci_directions, median_spacing, view_depths, visibility_votes
 

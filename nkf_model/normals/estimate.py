@@ -788,16 +788,15 @@ def _checked(sign, state, info, learned: bool, cancel_poll: CancelPoll):
 
 
 def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residual, cancel_poll,
-            stop_if_misregistered: bool = False, memo: Optional[dict] = None, follow_neighbours: bool = False):
+            stop_if_misregistered: bool = False, follow_neighbours: bool = False):
     """Signs (N,), the :class:`~nkf_model.normals.sign_check.OrientationState` behind them and the
     :class:`OrientationInfo`: :func:`orient_normals` without the learned check (also used to
     train it).
 
     ``stop_if_misregistered``: return ``None`` as soon as the signs of the propagation read as
     misregistered overlapping scans (:func:`misregistered`), before the costlier global steps, so that
-    the caller can orient again with a wider noise level. ``memo``: a dict that keeps what does not
-    depend on the noise level (the views' depth buffers, "outward" and "up") for a second call on the
-    same points and normals. ``follow_neighbours``: the views' discs (:func:`splat_radii`)."""
+    the caller can orient again with a wider noise level. ``follow_neighbours``: the views' discs
+    (:func:`splat_radii`)."""
     p = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
     vp = check_viewpoints(viewpoints)
@@ -820,16 +819,9 @@ def _orient(points, normals, *, orientation, viewpoints, k, tree, noise, residua
     else:
         sides = layer_sides(p, nrm, spacing, tree, noise_level, cancel_poll)
         layers = (sides[0][sub] > 0, sides[1][sub] > 0)
-        key = ("depths", follow_neighbours)
-        depths = None if memo is None else memo.get(key)
-        if depths is None:
-            dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
-            depths = view_depths(p[sub], nrm[sub], view_spacing, directions=-dirs, cancel_poll=cancel_poll,
-                                 follow_neighbours=follow_neighbours)
-            if memo is not None:  # kept: about 1 MB per 1,000 points drawn
-                depths = memo[key] = list(depths)
-        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, noise=noise_level, layers=layers,
-                                  cancel_poll=cancel_poll, depths=depths)
+        dirs = fibonacci_directions(N_VIEWS, upper_only=orientation == "up")
+        sv, sw = visibility_votes(p[sub], nrm[sub], view_spacing, directions=-dirs, noise=noise_level,
+                                  layers=layers, cancel_poll=cancel_poll, follow_neighbours=follow_neighbours)
     votes = np.zeros(n)
     weight = np.zeros(n)
     votes[sub], weight[sub] = sv, sw
