@@ -521,6 +521,7 @@ class Fit:
             "reduction": info["reduction"],
             "subset": info["subset"],
             "outliers": info.get("outliers"),
+            "denoise": info.get("denoise"),
             "normals": info["normals"],
             "orientation": info["orientation"],
             "pou": None if sol.pou_info is None else dict(sol.pou_info.__dict__),
