@@ -22,7 +22,7 @@ from ..normals.estimate import DEFAULT_K as NORMAL_K
 from ..normals.estimate import check_orientation, check_viewpoints, estimate_normals, median_spacing
 from ..options import SETTING, Options
 from ..points.clean import clean_points
-from ..points.denoise import DENOISE_MIN_RATIO, denoise_along_normals
+from ..points.denoise import DENOISE_MIN_POINTS, along_normal_moves, apply_moves, is_noisy
 from ..points.noise import estimate_noise, noise_lam
 from ..points.normalise import GRID_HALF, Normalisation
 from ..points.outliers import OUTLIER_MIN_POINTS, sparse_outliers
@@ -330,11 +330,13 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     # 0.9658 estimated again, 0.9684 kept; 0.9682 without the move; docs/real_scans.md).
     sigma = estimate_noise(x, nrm, tree=tree)
     denoise_info = None
-    if spacing > 0 and sigma / spacing >= DENOISE_MIN_RATIO:
-        moved = denoise_along_normals(x, nrm, spacing, sigma, tree=tree, cancel_poll=track.cancel_poll)
-        shift = np.linalg.norm(moved - x, axis=1)
-        denoise_info = {"noise": sigma * norm.scale, "ratio": sigma / spacing,
-                        "median_move": float(np.median(shift)) * norm.scale}
+    moves = None
+    if n >= DENOISE_MIN_POINTS:
+        moves = along_normal_moves(x, nrm, spacing, tree=tree, cancel_poll=track.cancel_poll)
+    if moves is not None and sigma > 0 and is_noisy(moves, spacing):
+        moved = apply_moves(x, nrm, moves, sigma)
+        denoise_info = {"noise": sigma * norm.scale, "median_move": float(np.median(np.abs(moves))) / spacing,
+                        "moved": float(np.median(np.linalg.norm(moved - x, axis=1))) * norm.scale}
         x = moved
         tree = cKDTree(x)
     eps_used = float(opts.eps) if opts.eps is not None else default_eps(n)

@@ -13,15 +13,18 @@ the neighbours whose normals lie within about 25 degrees of the point's own, the
 other face of a thin part, or a neighbour across a sharp edge, does not pull the point. The part of
 each move that its neighbours share (the same weighted mean of their moves) is taken out: noise and
 interleaved layers differ from point to point, the surface's own bend does not, so curved and
-detailed surfaces keep their shape (on clean 10,000-point samples with estimated normals the
-estimated noise reads up to 0.3 spacings, from the bend and not from noise: without this, IoU of
-bullet3__textured-0008192 0.8157 -> 0.8052; with it 0.8138). Each move is at most ``max_move``
-noise levels, so no point travels further than the noise could have put it.
+detailed surfaces keep their shape (forced onto a clean 10,000-point sample of
+bullet3__textured-0008192 with estimated normals, the plain step costs 0.0105 IoU, this one 0.0019).
+Each move is at most ``max_move`` noise levels, so no point travels further than the noise could
+have put it.
 
-Used by :func:`nkf_model.reconstruct` on input whose estimated noise is at least
-:data:`DENOISE_MIN_RATIO` of the point spacing (simulated range scans read 0.36 to 0.39, the dragon of
-``../shared/data/scans`` 0.26; clean samples with their own normals 0 to 0.08). Chosen on simulated
-all-round range scans (docs/real_scans.md).
+Used by :func:`nkf_model.reconstruct` on inputs of :data:`DENOISE_MIN_POINTS` or more whose median
+move is at least :data:`DENOISE_MIN_MOVE` spacings (:func:`is_noisy`). Measured with estimated
+normals: clean samples of 18 `val` meshes at 10,000 and 50,000 points read 0.02 to 0.07 (their
+estimated noise 0.1 to 0.3 spacings, from the bend), at 1,000 points 5 of them 0.10 to 0.15 (hence
+the size); 10,000-point samples with noise 0.005 0.23 to 0.38 and simulated all-round range scans
+0.21 to 0.25 (5 meshes each).
+Chosen on simulated all-round range scans (docs/real_scans.md).
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-DENOISE_MIN_RATIO = 0.15  # estimated noise / median spacing from which the points are moved
+DENOISE_MIN_POINTS = 10_000  # smaller inputs are left alone (sparse clean samples bend too much per spacing)
+DENOISE_MIN_MOVE = 0.1  # median move (curvature taken out), in spacings, from which the points are moved
 DENOISE_NEIGHBOURS = 16
 DENOISE_RADIUS = 1.5  # Gaussian width of the tangential weights, in point spacings
 DENOISE_SAME_SHEET = 0.9  # cos between two normals (oriented) that count as the same sheet
@@ -40,11 +44,10 @@ DENOISE_MAX_MOVE = 1.5  # largest move, in noise levels
 _CHUNK = 50_000
 
 
-def denoise_along_normals(points: np.ndarray, normals: np.ndarray, spacing: float, noise: float, *,
-                          k: int = DENOISE_NEIGHBOURS, radius: float = DENOISE_RADIUS,
-                          max_move: float = DENOISE_MAX_MOVE, tree: Optional[cKDTree] = None,
-                          cancel_poll: Optional[Callable[[], None]] = None, keep_curvature: bool = True) -> np.ndarray:
-    """Points moved along their normals to the weighted mean height of their same-sheet neighbours.
+def along_normal_moves(points: np.ndarray, normals: np.ndarray, spacing: float, *,
+                       k: int = DENOISE_NEIGHBOURS, radius: float = DENOISE_RADIUS, tree: Optional[cKDTree] = None,
+                       cancel_poll: Optional[Callable[[], None]] = None, keep_curvature: bool = True) -> np.ndarray:
+    """How far each point lies from the middle of its same-sheet neighbours, along its normal.
 
     Parameters
     ----------
@@ -53,9 +56,6 @@ def denoise_along_normals(points: np.ndarray, normals: np.ndarray, spacing: floa
         Unit normals, oriented (the other face of a thin part points the other way).
     spacing : float
         Median distance to the nearest neighbour, in the units of ``points``.
-    noise : float
-        Position noise (a standard deviation, as :func:`nkf_model.points.noise.estimate_noise`
-        gives), in the same units; each point moves at most ``max_move * noise``.
     k : int
         Neighbours per point.
     radius : float
@@ -65,22 +65,21 @@ def denoise_along_normals(points: np.ndarray, normals: np.ndarray, spacing: floa
     cancel_poll : callable, optional
         Called between chunks of points; raises to stop.
     keep_curvature : bool
-        Take out the part of each move its neighbours share (the default); ``False`` moves each point
-        by its own weighted mean height (a plain bilateral step, which flattens bends).
+        Take out the part of each move its neighbours share (the default); ``False`` gives each
+        point's own weighted mean height (a plain bilateral step, which flattens bends).
 
     Returns
     -------
-    (N, 3) float64
-        A new array (``points`` is not changed); a copy of ``points`` when there are at most ``k``
-        points or ``noise`` or ``spacing`` is not positive.
+    (N,) float64
+        The signed move along each normal, in the units of ``points``, unbounded; zeros when there
+        are at most ``k`` points or ``spacing`` is not positive.
     """
-    x = np.array(points, dtype=np.float64, copy=True)
+    x = np.asarray(points, dtype=np.float64)
     n = len(x)
-    if n <= k or not noise > 0 or not spacing > 0:
-        return x
+    if n <= k or not spacing > 0:
+        return np.zeros(n)
     nrm = np.asarray(normals, dtype=np.float64)
     tree = tree if tree is not None else cKDTree(x)
-    limit = max_move * noise
     inv = 1.0 / (2.0 * (radius * spacing) ** 2)
     moves = np.empty(n)
     neighbours = np.empty((n, k), dtype=np.int64)
@@ -103,5 +102,30 @@ def denoise_along_normals(points: np.ndarray, normals: np.ndarray, spacing: floa
     if keep_curvature:
         # The part of the move its neighbours share is the surface's own bend, not noise: take it out.
         moves = moves - (moves + (weights * moves[neighbours]).sum(axis=1)) / (weights.sum(axis=1) + 1.0)
-    np.clip(moves, -limit, limit, out=moves)
-    return x + moves[:, None] * nrm
+    return moves
+
+
+def apply_moves(points: np.ndarray, normals: np.ndarray, moves: np.ndarray, noise: float,
+                max_move: float = DENOISE_MAX_MOVE) -> np.ndarray:
+    """``points + clip(moves, +-max_move * noise) * normals``, a new (N, 3) array."""
+    limit = max_move * max(float(noise), 0.0)
+    return np.asarray(points, np.float64) + np.clip(moves, -limit, limit)[:, None] * np.asarray(normals, np.float64)
+
+
+def is_noisy(moves: np.ndarray, spacing: float) -> bool:
+    """Whether the median move is at least :data:`DENOISE_MIN_MOVE` spacings (noisy input)."""
+    return len(moves) > 0 and spacing > 0 and float(np.median(np.abs(moves))) >= DENOISE_MIN_MOVE * spacing
+
+
+def denoise_along_normals(points: np.ndarray, normals: np.ndarray, spacing: float, noise: float, *,
+                          max_move: float = DENOISE_MAX_MOVE, **kw) -> np.ndarray:
+    """Points moved along their normals to the middle of their same-sheet neighbours
+    (:func:`along_normal_moves`, keywords as there), each by at most ``max_move * noise``.
+
+    ``noise`` is the position noise (a standard deviation, as
+    :func:`nkf_model.points.noise.estimate_noise` gives) in the units of ``points``. Returns a new
+    (N, 3) array; ``points`` is not changed (a copy when ``noise`` is not positive).
+    """
+    if not noise > 0:
+        return np.array(points, dtype=np.float64, copy=True)
+    return apply_moves(points, normals, along_normal_moves(points, normals, spacing, **kw), noise, max_move)
