@@ -268,6 +268,8 @@ def cmd_reconstruct(args, program: bool = False) -> int:
             extra.append(f"reduced from {st['reduction']['from']:,}")
         if st.get("normals") == "estimated":
             extra.append("normals estimated")
+        if st.get("denoise"):
+            extra.append(f"noisy: points moved a median {st['denoise']['moved']:.3g} to the middle of their sheet")
         if st.get("trim"):
             extra.append(f"{st['trim']['trimmed_faces'] + st['trim']['small_piece_faces']:,} triangles trimmed")
         if mesh.colors is not None:

@@ -135,3 +135,19 @@ def test_a_bend_is_not_noise_but_noise_is():
     assert is_noisy(along_normal_moves(p, nrm, spacing, keep_curvature=False), spacing)
     noisy = p * (1 + rng.normal(0, 0.25 * spacing, (len(p), 1)))
     assert is_noisy(along_normal_moves(noisy, nrm, spacing), spacing)
+
+
+def test_the_command_line_says_when_it_moved_noisy_points(tmp_path, capsys):
+    from nkf_model.cli import main
+    from nkf_model.io.files import write_point_cloud
+
+    rng = np.random.default_rng(5)
+    p, nrm = _sphere(12_000, rng)
+    spacing = median_spacing(p)
+    noisy = p + rng.normal(0, 0.3 * spacing, p.shape)
+    write_point_cloud(tmp_path / "noisy.ply", noisy, nrm)
+    write_point_cloud(tmp_path / "clean.ply", p, nrm)
+    assert main(["reconstruct", str(tmp_path / "noisy.ply"), str(tmp_path / "a.ply"), "--resolution", "40"]) == 0
+    assert "noisy: points moved a median" in capsys.readouterr().out
+    assert main(["reconstruct", str(tmp_path / "clean.ply"), str(tmp_path / "b.ply"), "--resolution", "40"]) == 0
+    assert "noisy" not in capsys.readouterr().out
