@@ -323,15 +323,17 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     # One tree and one spacing per fit: the noise estimate and floor, and every mesh's clean step.
     tree = cKDTree(x)
     spacing = median_spacing(x, tree)
-    # Noisy input (scans: noise, misregistered layers): each point moves along its normal to the middle
-    # of its same-sheet neighbours before the fit (nkf_model.points.denoise). The noise estimated before
-    # the move sets the noise floor and the feature scale below: estimated again after it, it reads
-    # lower and the fit follows what is left (7 all-round scans, moves of up to 3 noise levels: mean NC
-    # 0.9658 estimated again, 0.9684 kept; 0.9682 without the move; docs/real_scans.md).
+    # Misregistered scans (their normal estimation reads overlapping layers of one surface): each point
+    # moves along its normal to the middle of its same-sheet neighbours before the fit, so that the
+    # layers meet (nkf_model.points.denoise). Dense noisy samples of one surface are left alone: on
+    # them the move cost bullet3__029 F 0.993 -> 0.971 and split kenney__key (docs/real_scans.md). The
+    # noise estimated before the move sets the noise floor and the feature scale below: estimated
+    # again after it, it reads lower and the fit follows what is left.
     sigma = estimate_noise(x, nrm, tree=tree)
     denoise_info = None
     moves = None
-    if n >= DENOISE_MIN_POINTS:
+    layered = normal_info is not None and bool(normal_info.misregistered)
+    if layered and n >= DENOISE_MIN_POINTS:
         moves = along_normal_moves(x, nrm, spacing, tree=tree, cancel_poll=track.cancel_poll)
     if moves is not None and sigma > 0 and is_noisy(moves, spacing):
         moved = apply_moves(x, nrm, moves, sigma)
