@@ -18,13 +18,15 @@ bullet3__textured-0008192 with estimated normals, the plain step costs 0.0105 Io
 Each move is at most ``max_move`` noise levels, so no point travels further than the noise could
 have put it.
 
-Used by :func:`nkf_model.reconstruct` on inputs of :data:`DENOISE_MIN_POINTS` or more whose median
+Used by :func:`nkf_model.reconstruct` on clouds whose normal estimation reads them as misregistered
+scans (layers on either side as often), of :data:`DENOISE_MIN_POINTS` points or more, whose median
 move is at least :data:`DENOISE_MIN_MOVE` spacings (:func:`is_noisy`). Measured with estimated
 normals: clean 10,000-point samples of 5 `val` meshes read 0.02 to 0.07 (their estimated noise 0.1
 to 0.3 spacings, from the bend), and none of 18 reaches 0.1 at 10,000 or 50,000 points; at 1,000
 points 5 of those 18 read 0.10 to 0.15 (hence the size). With noise 0.005 (their own normals) the same 5 read
 0.23 to 0.38 at 10,000 points, their simulated all-round range scans 0.21 to 0.25.
-Chosen on simulated all-round range scans (docs/real_scans.md).
+Dense noisy samples of one surface are not moved: on them it cost detail (docs/real_scans.md).
+Chosen on simulated all-round range scans.
 """
 
 from __future__ import annotations
