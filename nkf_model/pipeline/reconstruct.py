@@ -331,11 +331,11 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     # again after it, it reads lower and the fit follows what is left.
     sigma = estimate_noise(x, nrm, tree=tree)
     denoise_info = None
-    moves = None
     layered = normal_info is not None and bool(normal_info.misregistered)
-    if layered and n >= DENOISE_MIN_POINTS:
+    moves = None
+    if layered and n >= DENOISE_MIN_POINTS and sigma > 0:
         moves = along_normal_moves(x, nrm, spacing, tree=tree, cancel_poll=track.cancel_poll)
-    if moves is not None and sigma > 0 and is_noisy(moves, spacing):
+    if moves is not None and is_noisy(moves, spacing):
         moved = apply_moves(x, nrm, moves, sigma)
         denoise_info = {"noise": sigma * norm.scale, "median_move": float(np.median(np.abs(moves))) / spacing,
                         "moved": float(np.median(np.linalg.norm(moved - x, axis=1))) * norm.scale}

@@ -37,11 +37,12 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .noise import SAME_SHEET_COS  # normals within about 25 degrees, the same way round: one sheet
+
 DENOISE_MIN_POINTS = 10_000  # smaller inputs are left alone (sparse clean samples bend too much per spacing)
 DENOISE_MIN_MOVE = 0.1  # median move (curvature taken out), in spacings, from which the points are moved
 DENOISE_NEIGHBOURS = 16
 DENOISE_RADIUS = 1.5  # Gaussian width of the tangential weights, in point spacings
-DENOISE_SAME_SHEET = 0.9  # cos between two normals (oriented) that count as the same sheet
 DENOISE_MAX_MOVE = 1.5  # largest move, in noise levels
 _CHUNK = 50_000
 
@@ -96,7 +97,7 @@ def along_normal_moves(points: np.ndarray, normals: np.ndarray, spacing: float, 
         d = x[nb] - x[lo:hi, None]
         h = np.einsum("nkj,nj->nk", d, ni)
         t2 = np.maximum(np.einsum("nkj,nkj->nk", d, d) - h * h, 0.0)
-        same = np.einsum("nkj,nj->nk", nrm[nb], ni) > DENOISE_SAME_SHEET
+        same = np.einsum("nkj,nj->nk", nrm[nb], ni) > SAME_SHEET_COS
         w = np.where(same, np.exp(-t2 * inv), 0.0)
         moves[lo:hi] = (w * h).sum(axis=1) / (w.sum(axis=1) + 1.0)
         neighbours[lo:hi] = nb
