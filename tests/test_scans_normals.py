@@ -192,6 +192,29 @@ def test_misregistered_scans_are_told_from_thin_parts_and_oriented_again():
         assert agreement(e, n) > 0.97
 
 
+def test_the_misregistration_rule_reads_the_layer_share_and_balance():
+    # misregistered(): more than MISREGISTERED_LAYERS of the points with another layer, and outward-only
+    # layer points more than MISREGISTERED_BALANCE of the inward-only ones (signs +1: "above" is outward).
+    from nkf_model.normals.estimate import MISREGISTERED_BALANCE, MISREGISTERED_LAYERS, misregistered
+
+    def cloud(share, outward_of_inward, n=10_000):
+        layer = int(share * n)
+        out = int(round(layer * outward_of_inward / (1 + outward_of_inward)))
+        above, below = np.zeros(n, np.int64), np.zeros(n, np.int64)
+        above[:out] = 1
+        below[out:layer] = 1
+        return above, below, np.ones(n)
+
+    # Windmill's all-round scan (0.64 / 0.51) and the dense noisy Tank3 samples (0.667 / 1.14) are
+    # flagged; the clean samples are not: rough meshes have many layers, all inward (base_link 0.93 /
+    # 0.03), and below 0.6 (Tank3 at 10,000 points 0.50 / 0.75; the dragon 0.52 / 0.98).
+    assert misregistered(*cloud(0.64, 0.51)) and misregistered(*cloud(0.667, 1.14))
+    assert not misregistered(*cloud(0.93, 0.03))
+    assert not misregistered(*cloud(0.50, 0.75)) and not misregistered(*cloud(0.52, 0.98))
+    assert not misregistered(*cloud(MISREGISTERED_LAYERS - 0.01, 1.0))
+    assert not misregistered(*cloud(0.9, MISREGISTERED_BALANCE - 0.02))
+
+
 def test_views_drawn_once_vote_as_a_fresh_drawing_at_every_noise_level():
     # Depth buffers drawn once (view_depths) and read with several tolerances must vote as drawing
     # the views again with each tolerance. A box with a lid
