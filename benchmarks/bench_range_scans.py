@@ -111,27 +111,31 @@ def seen_metrics(pp, pn, rp, rn, surface_points, tau: float = FSCORE) -> dict:
     of it. Output samples whose nearest reference sample is unseen are left out (they close what no
     scanner saw, right or wrong); the rest and the seen reference samples are scored as in
     :func:`nkf_model.train.metrics.surface_metrics`. ``seen_part_f``: the F-score, against the whole
-    reference, of the seen reference samples taken as the output (precision 1). All inputs in units of the diagonal:
-    ``pp, pn`` (N, 3) output samples and normals, ``rp, rn`` (M, 3) reference ones, ``surface_points``
-    (K, 3)."""
+    reference, of the seen reference samples taken as the output (precision 1; it depends on the scan
+    only). All inputs in units of the diagonal: ``pp, pn`` (N, 3) output samples and normals, ``rp, rn``
+    (M, 3) reference ones, ``surface_points`` (K, 3)."""
     d_seen, _ = cKDTree(surface_points).query(rp, workers=-1)
     seen = d_seen < tau
     d_pr, i_pr = cKDTree(rp).query(pp, workers=-1)
     keep = seen[i_pr]
     d_rp, i_rp = cKDTree(pp).query(rp[seen], workers=-1)
-    if not keep.any() or not seen.any():
-        return {"seen_share": float(seen.mean()), "seen_chamfer": float("nan"), "seen_nc": 0.0, "seen_fscore": 0.0,
+    if not seen.any():
+        return {"seen_share": 0.0, "seen_chamfer": float("nan"), "seen_nc": 0.0, "seen_fscore": 0.0,
                 "seen_part_f": 0.0}
     # The seen part of the reference as a surface of its own, scored against the whole reference.
     d_part, _ = cKDTree(rp[seen]).query(rp, workers=-1)
     part_recall = float((d_part < tau).mean())
+    part_f = 2 * part_recall / (1 + part_recall)
+    if not keep.any():
+        return {"seen_share": float(seen.mean()), "seen_chamfer": float("nan"), "seen_nc": 0.0, "seen_fscore": 0.0,
+                "seen_part_f": part_f}
     nc_pr = np.abs(np.sum(pn[keep] * rn[i_pr[keep]], axis=1)).mean()
     nc_rp = np.abs(np.sum(rn[seen] * pn[i_rp], axis=1)).mean()
     precision = float((d_pr[keep] < tau).mean())
     recall = float((d_rp < tau).mean())
     f = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     return {"seen_share": float(seen.mean()), "seen_chamfer": 0.5 * float(d_pr[keep].mean() + d_rp.mean()),
-            "seen_nc": 0.5 * float(nc_pr + nc_rp), "seen_fscore": f, "seen_part_f": 2 * part_recall / (1 + part_recall)}
+            "seen_nc": 0.5 * float(nc_pr + nc_rp), "seen_fscore": f, "seen_part_f": part_f}
 
 
 def scan_of(entry, scans: dict, seed: int) -> tuple[RangeScan, np.ndarray, np.ndarray]:

@@ -26,6 +26,8 @@ def test_seen_part_f_is_what_the_seen_part_alone_would_score():
     # It depends on the scan, not on the output.
     m2 = seen_metrics(ref, ref_n, ref, ref_n, scan, tau=0.02)
     assert m2["seen_part_f"] == m["seen_part_f"]
+    far = seen_metrics(b, bn, ref, ref_n, scan, tau=0.02)  # only the unseen square: nothing scored as seen
+    assert far["seen_part_f"] == m["seen_part_f"] and far["seen_fscore"] == 0.0
     # Everything seen: the seen part is the reference.
     m3 = seen_metrics(ref, ref_n, ref, ref_n, ref, tau=0.02)
     assert m3["seen_part_f"] == 1.0

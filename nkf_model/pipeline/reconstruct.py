@@ -329,18 +329,21 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
     # them the move cost bullet3__029 F 0.993 -> 0.971 and split kenney__key (docs/real_scans.md). The
     # noise estimated before the move sets the noise floor and the feature scale below: estimated
     # again after it, it reads lower and the fit follows what is left.
-    sigma = estimate_noise(x, nrm, tree=tree)
-    denoise_info = None
+    kind = budget.choose_solver(n, max_centres, solver)
     layered = normal_info is not None and bool(normal_info.misregistered)
-    moves = None
+    # The noise is read where something uses it: the denoise step, the learned features beyond the
+    # sizes they were trained on, the partition of unity's noise floor.
+    needs_noise = layered or kind == "pou" or (model is not None and n > NKF_TRAINED_POINTS)
+    sigma = estimate_noise(x, nrm, tree=tree) if needs_noise else None
+    denoise_info = None
     if layered and n >= DENOISE_MIN_POINTS and sigma > 0:
         moves = along_normal_moves(x, nrm, spacing, tree=tree, cancel_poll=track.cancel_poll)
-    if moves is not None and is_noisy(moves, spacing):
-        moved = apply_moves(x, nrm, moves, sigma)
-        denoise_info = {"noise": sigma * norm.scale, "median_move": float(np.median(np.abs(moves))) / spacing,
-                        "moved": float(np.median(np.linalg.norm(moved - x, axis=1))) * norm.scale}
-        x = moved
-        tree = cKDTree(x)
+        if is_noisy(moves, spacing):
+            moved = apply_moves(x, nrm, moves, sigma)
+            denoise_info = {"noise": sigma * norm.scale, "median_move": float(np.median(np.abs(moves))) / spacing,
+                            "moved": float(np.median(np.linalg.norm(moved - x, axis=1))) * norm.scale}
+            x = moved
+            tree = cKDTree(x)
     eps_used = float(opts.eps) if opts.eps is not None else default_eps(n)
     xa, y = augment(x, nrm, eps_used)
     phi = None
@@ -356,7 +359,6 @@ def _reconstruct(points, normals, opts: Options, *, model, progress, cancel, vie
                 feature_scale = 0.0
         prep = model.prepare(xa, y, feature_scale=feature_scale)
         a, y, phi = prep.a, prep.y, prep.phi
-    kind = budget.choose_solver(n, max_centres, solver)
     if opts.device == "auto" and kind == "pou" and engine.device != "cpu":
         # The partition of unity's sum is one fused CPU loop; through PyTorch on a GPU it runs patch
         # by patch and was 5x slower (20,000 points: 9.2 s on an H100 against 1.8 s on its CPU).
